@@ -1,0 +1,1 @@
+"""Command-line entry points (Hydra apps over the repository's ``conf/``)."""

@@ -1,0 +1,1 @@
+"""Scenes, procedural media and skies, Mitsuba rendering and dataset I/O."""

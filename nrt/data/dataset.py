@@ -1,0 +1,204 @@
+"""Load and validate a dataset folder (rendered by nrt or written by any other tool).
+
+Every user mistake raises :class:`~nrt.errors.DatasetError` naming the file or key and
+the fix. See README "Data format" for the layout; ``ground_truth.npz`` and ``scene.json``
+are optional (metrics that need ground truth are then skipped).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nrt.cameras import Intrinsics, pixel_rays
+from nrt.data.exr import read_exr
+from nrt.errors import DatasetError
+from nrt.physics.envmap import EnvironmentMap
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BBOX = [[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]
+GROUND_TRUTH_FILE = "ground_truth.npz"
+
+
+@dataclass
+class SceneDataset:
+    """One split of a dataset as tensors (CPU, float32).
+
+    ``images`` (N, H, W, 3) linear radiance; ``c2w`` (N, 4, 4) OpenGL cameras;
+    ``env_index`` (N,) index into ``env_names`` / ``envmaps``; ``bbox`` (2, 3) medium box;
+    ``ground_truth``: ``sigma_a``, ``sigma_s`` (Nz, Ny, Nx, 3), ``g`` (Nz, Ny, Nx) or None.
+    """
+
+    root: Path
+    split: str
+    images: torch.Tensor
+    c2w: torch.Tensor
+    intrinsics: Intrinsics
+    env_index: torch.Tensor
+    env_names: list[str]
+    envmaps: list[EnvironmentMap]
+    bbox: torch.Tensor
+    ground_truth: dict[str, torch.Tensor] | None
+    spec: dict | None
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    def rays(self, i: int, offsets: torch.Tensor | None = None):
+        """Origins, unit view directions and pixel radiance of image ``i``, (H, W, 3) each."""
+        o, d = pixel_rays(self.c2w[i], self.intrinsics, offsets)
+        return o, d, self.images[i]
+
+
+def _fail(path: Path, message: str) -> DatasetError:
+    return DatasetError(f"Dataset file '{path}': {message}")
+
+
+def _read_json(path: Path) -> dict:
+    if not path.is_file():
+        raise _fail(path, "not found. A dataset folder needs transforms_train.json and "
+                          "transforms_test.json; render one with `nrt-data scene=...` or "
+                          "point scene.path at a complete folder.")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise _fail(path, f"is not valid JSON ({exc}). Fix or re-render it.") from exc
+    if not isinstance(data, dict):
+        raise _fail(path, "must hold a JSON object with 'frames'.")
+    return data
+
+
+def _intrinsics(meta: dict, path: Path, width: int, height: int) -> Intrinsics:
+    w, h = int(meta.get("w", width)), int(meta.get("h", height))
+    if "fl_x" in meta:
+        fx = float(meta["fl_x"])
+        fy = float(meta.get("fl_y", fx))
+        return Intrinsics(w, h, fx, fy, float(meta.get("cx", w / 2)), float(meta.get("cy", h / 2)))
+    if "camera_angle_x" in meta:
+        return Intrinsics.from_fov_x(w, h, float(meta["camera_angle_x"]))
+    raise _fail(path, "has neither 'camera_angle_x' nor 'fl_x'; add the horizontal field of "
+                      "view in radians ('camera_angle_x') or focal lengths in pixels.")
+
+
+def _environments(meta: dict, path: Path, root: Path) -> tuple[list[str], list[EnvironmentMap]]:
+    envs = meta.get("environments")
+    if not isinstance(envs, dict) or not envs:
+        raise _fail(path, "lacks 'environments', a mapping from environment name to its "
+                          "equirectangular EXR (e.g. {\"sky0\": \"envmaps/sky0.exr\"}); the "
+                          "known illumination is part of every nrt dataset.")
+    names = list(envs)
+    maps = []
+    for name in names:
+        radiance = torch.from_numpy(read_exr(root / envs[name]))
+        try:
+            maps.append(EnvironmentMap(radiance))
+        except ValueError as exc:
+            raise _fail(root / envs[name], f"{exc}.") from exc
+    return names, maps
+
+
+def _frame_matrix(frame: dict, k: int, path: Path) -> np.ndarray:
+    m = np.asarray(frame.get("transform_matrix", []), dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise _fail(path, f"frames[{k}].transform_matrix must be a finite 4x4 matrix.")
+    if not np.allclose(m[3], [0, 0, 0, 1]):
+        raise _fail(path, f"frames[{k}].transform_matrix must end in the row [0, 0, 0, 1].")
+    return m
+
+
+def _ground_truth(root: Path) -> dict[str, torch.Tensor] | None:
+    path = root / GROUND_TRUTH_FILE
+    if not path.is_file():
+        log.info("No %s in %s: metrics that need ground truth will be skipped.",
+                 GROUND_TRUTH_FILE, root)
+        return None
+    try:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in ("sigma_a", "sigma_s", "g") if k in data}
+    except Exception as exc:
+        raise _fail(path, f"cannot be read ({exc}); re-export it.") from exc
+    missing = {"sigma_a", "sigma_s", "g"} - set(arrays)
+    if missing:
+        raise _fail(path, f"lacks arrays {sorted(missing)}; it needs sigma_a, sigma_s "
+                          "(Nz, Ny, Nx, 3) and g (Nz, Ny, Nx).")
+    grid = arrays["g"].shape
+    for key, want in (("sigma_a", (*grid, 3)), ("sigma_s", (*grid, 3))):
+        if arrays[key].shape != want or len(grid) != 3:
+            raise _fail(path, f"array '{key}' has shape {arrays[key].shape}, expected {want} "
+                              "with g of shape (Nz, Ny, Nx).")
+    for key, a in arrays.items():
+        if not np.all(np.isfinite(a)):
+            raise _fail(path, f"array '{key}' holds NaN or Inf values.")
+    return {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in arrays.items()}
+
+
+def load_dataset(root: str | Path, split: str = "train") -> SceneDataset:
+    """Read one split of the dataset folder ``root`` into tensors, validating everything."""
+    root = Path(root).expanduser()
+    if not root.is_dir():
+        raise DatasetError(f"Dataset folder '{root}' does not exist. Render it with "
+                           "`nrt-data scene=<name>` or fix scene.path.")
+    path = root / f"transforms_{split}.json"
+    meta = _read_json(path)
+    frames = meta.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise _fail(path, "has no 'frames' list (or it is empty).")
+    env_names, envmaps = _environments(meta, path, root)
+    bbox = np.asarray(meta.get("medium_bbox", DEFAULT_BBOX), dtype=float)
+    if bbox.shape != (2, 3) or not np.all(bbox[1] > bbox[0]):
+        raise _fail(path, "'medium_bbox' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]].")
+    images, mats, env_index = [], [], []
+    for k, frame in enumerate(frames):
+        if not isinstance(frame, dict) or "file_path" not in frame:
+            raise _fail(path, f"frames[{k}] has no 'file_path'.")
+        env = frame.get("environment", env_names[0] if len(env_names) == 1 else None)
+        if env not in env_names:
+            raise _fail(path, f"frames[{k}].environment is '{env}', which is not one of the "
+                              f"declared environments {env_names}; add it to 'environments' "
+                              "or fix the frame.")
+        m = _frame_matrix(frame, k, path)
+        inside = np.all(m[:3, 3] >= bbox[0]) and np.all(m[:3, 3] <= bbox[1])
+        if inside:
+            raise _fail(path, f"frames[{k}] places the camera at {m[:3, 3].tolist()}, inside the "
+                              f"medium box {bbox.tolist()}; cameras must look at the medium "
+                              "from outside (fix the pose or 'medium_bbox').")
+        file = root / str(frame["file_path"])
+        if file.suffix.lower() != ".exr":
+            file = file.with_name(file.name + ".exr")
+        img = read_exr(file)
+        if images and img.shape != images[0].shape:
+            raise _fail(file, f"is {img.shape[1]}x{img.shape[0]} pixels but "
+                              f"{frames[0]['file_path']} is {images[0].shape[1]}x"
+                              f"{images[0].shape[0]}; all images of a split share one size.")
+        images.append(img)
+        mats.append(m)
+        env_index.append(env_names.index(env))
+    height, width = images[0].shape[:2]
+    intr = _intrinsics(meta, path, width, height)
+    if (intr.width, intr.height) != (width, height):
+        raise _fail(path, f"declares images of {intr.width}x{intr.height} pixels (w, h) but "
+                          f"the images are {width}x{height}; fix 'w'/'h' or the images.")
+    if not (math.isfinite(intr.fx) and intr.fx > 0 and intr.fy > 0):
+        raise _fail(path, "focal length must be positive and finite.")
+    spec = None
+    if (root / "scene.json").is_file():
+        spec = _read_json(root / "scene.json").get("spec")
+    return SceneDataset(
+        root=root, split=split,
+        images=torch.from_numpy(np.stack(images)),
+        c2w=torch.from_numpy(np.stack(mats)).float(),
+        intrinsics=intr,
+        env_index=torch.tensor(env_index, dtype=torch.long),
+        env_names=env_names, envmaps=envmaps,
+        bbox=torch.tensor(bbox, dtype=torch.float32),
+        ground_truth=_ground_truth(root),
+        spec=spec,
+    )

@@ -1,0 +1,176 @@
+"""Mitsuba 3 for nrt: variant choice, the spatially varying HG plugin, scene building.
+
+Only what a scene's effects call for is built: the ``isotropic`` phase for isotropic
+scenes, Mitsuba's ``hg`` for one g, and the registered ``nrt_hg_grid`` plugin (reading g
+from a grid) when g varies; a one-channel extinction grid when extinction is grey;
+``max_depth = order + 1`` from the maximum scattering order (-1: unlimited).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from nrt.cameras import opengl_to_mitsuba
+from nrt.errors import NrtError
+
+log = logging.getLogger(__name__)
+
+_PROBE = (
+    "import mitsuba as mi; mi.set_variant('{v}'); "
+    "s = mi.load_dict({{'type': 'scene', 'integrator': {{'type': 'path'}}, "
+    "'shape': {{'type': 'sphere'}}, "
+    "'sensor': {{'type': 'perspective', 'film': {{'type': 'hdrfilm', 'width': 4, 'height': 4}}}}}}); "
+    "mi.render(s, spp=1)"
+)
+_chosen_variant: str | None = None
+
+
+def _variant_works(variant: str) -> bool:
+    """Render a 4x4 image with ``variant`` in a subprocess (a bad LLVM aborts the process)."""
+    try:
+        proc = subprocess.run([sys.executable, "-c", _PROBE.format(v=variant)],
+                              capture_output=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        return False
+    return proc.returncode == 0
+
+
+def _cuda_present() -> bool:
+    try:
+        import torch
+
+        return torch.cuda.is_available()
+    except Exception:  # torch without CUDA support, or no driver
+        return False
+
+
+def select_variant(preferred: str = "auto"):
+    """Set and return the Mitsuba module on the fastest working RGB variant.
+
+    ``preferred='auto'`` tries ``cuda_ad_rgb`` (when CUDA is present), then ``llvm_ad_rgb``
+    (needs LLVM >= 16, e.g. ``apt-get install libllvm19``), then ``scalar_rgb``; the
+    environment variable ``NRT_MITSUBA_VARIANT`` overrides it. The choice is logged.
+    """
+    global _chosen_variant
+    import mitsuba as mi
+
+    preferred = os.environ.get("NRT_MITSUBA_VARIANT", preferred)
+    if _chosen_variant is None:
+        if preferred != "auto":
+            if preferred not in mi.variants():
+                raise NrtError(f"Mitsuba variant '{preferred}' (render.variant or "
+                               f"NRT_MITSUBA_VARIANT) is not one of {mi.variants()}.")
+            candidates = [preferred]
+        else:
+            candidates = (["cuda_ad_rgb"] if _cuda_present() else []) + ["llvm_ad_rgb"]
+        _chosen_variant = next((v for v in candidates if _variant_works(v)), None)
+        if _chosen_variant is None:
+            if preferred != "auto":
+                raise NrtError(f"Mitsuba variant '{preferred}' fails to render here. For "
+                               "llvm_ad_rgb install a newer LLVM (apt-get install libllvm19) "
+                               "or set DRJIT_LIBLLVM_PATH; or use render.variant=auto.")
+            log.warning("llvm_ad_rgb does not work here (LLVM >= 16 missing: apt-get install "
+                        "libllvm19); falling back to the slow scalar_rgb variant.")
+            _chosen_variant = "scalar_rgb"
+        log.info("Mitsuba %s, variant %s", mi.__version__, _chosen_variant)
+    mi.set_variant(_chosen_variant)
+    _register_plugins(mi)
+    return mi
+
+
+def _register_plugins(mi) -> None:
+    from nrt.data.phase_plugin import make_hg_grid_phase
+
+    mi.register_phase("nrt_hg_grid", make_hg_grid_phase(mi))
+
+
+def unit_cube_to_box(mi, bbox: np.ndarray):
+    """Transform mapping [0, 1]^3 (volume texture space) onto the box."""
+    lo, hi = np.asarray(bbox[0], float), np.asarray(bbox[1], float)
+    return mi.ScalarTransform4f().translate(lo.tolist()).scale((hi - lo).tolist())
+
+
+def medium_dict(mi, grids: dict, spec: dict) -> dict:
+    """Mitsuba ``heterogeneous`` medium of property grids (``[z, y, x]`` arrays)."""
+    effects = spec["effects"]
+    to_world = unit_cube_to_box(mi, np.asarray(spec["bbox"]))
+    sigma_s = np.asarray(grids["sigma_s"], np.float32)
+    sigma_t = np.asarray(grids["sigma_a"], np.float32) + sigma_s
+    albedo = np.where(sigma_t > 0, sigma_s / np.maximum(sigma_t, 1e-30), 0.0).astype(np.float32)
+    if not effects["chromatic"]:
+        sigma_t = sigma_t[..., :1]
+
+    def grid(data: np.ndarray) -> dict:
+        return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(data)),
+                "to_world": to_world}
+
+    phase = effects["phase"]
+    if phase == "isotropic":
+        phase_dict = {"type": "isotropic"}
+    elif phase == "hg":
+        phase_dict = {"type": "hg", "g": float(spec["medium"]["elements"][0]["g"])}
+    else:
+        phase_dict = {"type": "nrt_hg_grid", "g": grid(np.asarray(grids["g"])[..., None])}
+    return {"type": "heterogeneous", "sigma_t": grid(sigma_t), "albedo": grid(albedo),
+            "scale": 1.0, "phase": phase_dict}
+
+
+def max_depth(order: int) -> int:
+    """Mitsuba ``max_depth`` for a maximum scattering order (-1: unlimited)."""
+    return -1 if order < 0 else order + 1
+
+
+def scene_dict(mi, spec: dict, grids: dict | None, envmap: np.ndarray, width: int,
+               height: int, fov_x_deg: float, spp: int) -> dict:
+    """A complete scene: envmap, medium box (if ``grids``), point emitters, one sensor."""
+    bbox = np.asarray(spec["bbox"], float)
+    scene = {
+        "type": "scene",
+        "integrator": {"type": "volpath",
+                       "max_depth": max_depth(spec["effects"]["max_scattering_order"])},
+        "environment": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(
+            envmap, dtype=np.float32))},
+        "sensor": {
+            "type": "perspective", "fov": float(fov_x_deg), "fov_axis": "x",
+            "near_clip": 1e-3, "far_clip": 1e4,
+            "film": {"type": "hdrfilm", "width": int(width), "height": int(height),
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": int(spp)},
+        },
+    }
+    if grids is not None:
+        centre, half = (bbox[0] + bbox[1]) / 2, (bbox[1] - bbox[0]) / 2
+        scene["medium_box"] = {
+            "type": "cube",
+            "to_world": mi.ScalarTransform4f().translate(centre.tolist()).scale(half.tolist()),
+            "bsdf": {"type": "null"},
+            "interior": medium_dict(mi, grids, spec),
+        }
+    for i, e in enumerate(spec["effects"]["emitters"]):
+        scene[f"point_light_{i}"] = {"type": "point", "position": e["position"],
+                                     "intensity": {"type": "rgb", "value": e["intensity"]}}
+    return scene
+
+
+class ViewRenderer:
+    """Renders one loaded scene from many OpenGL cameras, reusing the compiled kernel."""
+
+    def __init__(self, mi, scene_description: dict):
+        self.mi = mi
+        self.scene = mi.load_dict(scene_description)
+        self.params = mi.traverse(self.scene)
+        self._key = next(k for k in self.params.keys() if k.endswith("to_world")
+                         and k.startswith("sensor"))
+
+    def render(self, c2w: np.ndarray, spp: int, seed: int) -> np.ndarray:
+        """Linear RGB radiance (H, W, 3) float32 seen by camera ``c2w`` (OpenGL)."""
+        mi = self.mi
+        self.params[self._key] = mi.ScalarTransform4f(opengl_to_mitsuba(c2w).tolist())
+        self.params.update()
+        img = mi.render(self.scene, spp=int(spp), seed=int(seed))
+        return np.asarray(img, dtype=np.float32)[..., :3]

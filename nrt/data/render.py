@@ -1,0 +1,147 @@
+"""Render a scene spec into a dataset folder with Mitsuba ``volpath`` (cached by spec hash).
+
+Layout of a dataset folder (see README, "Data format")::
+
+    scene.json                 resolved spec, its hash, Mitsuba version/variant, timings
+    transforms_train.json      cameras + frames (one frame = one view under one environment)
+    transforms_test.json
+    envmaps/<name>.exr         equirectangular environment maps (Mitsuba convention)
+    images/<name>/<split>_<i>.exr   linear HDR renders, RGB float32
+    ground_truth.npz           sigma_a, sigma_s (Nz,Ny,Nx,3), g (Nz,Ny,Nx), bbox (2,3)
+
+A dataset is written to a temporary sibling folder and renamed into place when complete,
+so an interrupted render never leaves a half dataset that looks finished.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from nrt.cameras import Intrinsics, look_at, sphere_positions
+from nrt.data import mitsuba_backend
+from nrt.data.exr import read_exr, write_exr
+from nrt.data.media import medium_grids
+from nrt.data.sky import sky_map
+from nrt.data.spec import resolve_scene, spec_hash
+from nrt.errors import SceneError
+
+log = logging.getLogger(__name__)
+
+SPLITS = ("train", "test")
+
+
+def camera_rig(spec: dict) -> tuple[dict[str, np.ndarray], Intrinsics]:
+    """OpenGL camera-to-world matrices per split (views on a sphere, looking at the box
+    centre; test views spread evenly among them) and the shared intrinsics."""
+    cams = spec["cameras"]
+    bbox = np.asarray(spec["bbox"], float)
+    centre = bbox.mean(0)
+    if cams["radius"] <= np.linalg.norm(bbox[1] - centre):
+        raise SceneError(f"Scene key 'cameras.radius' = {cams['radius']} puts cameras inside or "
+                         "on the medium box; use a radius larger than the box's half diagonal "
+                         f"({np.linalg.norm(bbox[1] - centre):.3f}).")
+    n_train, n_test = cams["num_train"], cams["num_test"]
+    pos = centre + sphere_positions(n_train + n_test, cams["radius"], cams["seed"])
+    test = np.zeros(len(pos), bool)
+    if n_test:
+        test[np.round(np.linspace(0, len(pos) - 1, n_test)).astype(int)] = True
+    c2w = np.stack([look_at(p, centre) for p in pos])
+    intr = Intrinsics.from_fov_x(cams["width"], cams["height"], np.deg2rad(cams["fov_x_deg"]))
+    return {"train": c2w[~test], "test": c2w[test]}, intr
+
+
+def environment_map(env: Mapping) -> np.ndarray:
+    """Radiance map (H, W, 3) of a resolved environment entry (procedural sky or file)."""
+    return sky_map(env) if env["type"] == "sky" else read_exr(env["path"])
+
+
+def dataset_folder(spec: dict, data_root: str | Path) -> Path:
+    """Where the dataset of ``spec`` lives: ``<data_root>/<name>-<spec hash>``."""
+    return Path(data_root) / f"{spec['name']}-{spec_hash(spec)}"
+
+
+def _transforms(intr: Intrinsics, bbox: list, env_files: dict, frames: list) -> dict:
+    return {
+        "camera_angle_x": intr.camera_angle_x,
+        "fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy,
+        "w": intr.width, "h": intr.height,
+        "medium_bbox": bbox,
+        "environments": env_files,
+        "frames": frames,
+    }
+
+
+def render_dataset(spec: dict, out_dir: str | Path, variant: str = "auto",
+                   progress: bool = True) -> Path:
+    """Render every view of ``spec`` under each environment into ``out_dir`` (atomic)."""
+    out_dir = Path(out_dir)
+    mi = mitsuba_backend.select_variant(variant)
+    start = time.perf_counter()
+    tmp = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "envmaps").mkdir(parents=True)
+    grids = medium_grids(spec)
+    np.savez_compressed(tmp / "ground_truth.npz", bbox=np.asarray(spec["bbox"], np.float32),
+                        **grids)
+    rigs, intr = camera_rig(spec)
+    cams = spec["cameras"]
+    env_files, frames = {}, {split: [] for split in SPLITS}
+    n_images = sum(len(r) for r in rigs.values()) * len(spec["environments"])
+    bar = tqdm(total=n_images, desc=f"rendering {spec['name']}", unit="img", disable=not progress)
+    for env_idx, (name, env) in enumerate(spec["environments"].items()):
+        radiance = environment_map(env)
+        env_files[name] = f"envmaps/{name}.exr"
+        write_exr(tmp / env_files[name], radiance)
+        (tmp / "images" / name).mkdir(parents=True)
+        renderer = mitsuba_backend.ViewRenderer(mi, mitsuba_backend.scene_dict(
+            mi, spec, grids, radiance, cams["width"], cams["height"], cams["fov_x_deg"],
+            spec["spp"]))
+        for split_idx, split in enumerate(SPLITS):
+            for i, c2w in enumerate(rigs[split]):
+                seed = (env_idx * len(SPLITS) + split_idx) * 100_003 + i
+                file_path = f"images/{name}/{split}_{i:03d}.exr"
+                write_exr(tmp / file_path, renderer.render(c2w, spec["spp"], seed))
+                frames[split].append({"file_path": file_path, "environment": name,
+                                      "transform_matrix": c2w.tolist()})
+                bar.update()
+    bar.close()
+    for split in SPLITS:
+        with open(tmp / f"transforms_{split}.json", "w") as f:
+            json.dump(_transforms(intr, spec["bbox"], env_files, frames[split]), f, indent=1)
+    seconds = time.perf_counter() - start
+    info = {"spec": spec, "spec_hash": spec_hash(spec),
+            "renderer": {"mitsuba": mi.__version__, "variant": mi.variant(),
+                         "seconds": round(seconds, 2), "images": n_images}}
+    with open(tmp / "scene.json", "w") as f:
+        json.dump(info, f, indent=1)
+    if out_dir.exists():  # a concurrent render of the same spec finished first: keep it
+        shutil.rmtree(tmp)
+    else:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(tmp, out_dir)
+    log.info("Rendered %d images of '%s' in %.1f s with Mitsuba %s (%s) into %s",
+             n_images, spec["name"], seconds, mi.__version__, mi.variant(), out_dir)
+    return out_dir
+
+
+def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "auto",
+                   progress: bool = True) -> Path:
+    """The dataset folder of a scene config: ``scene.path`` as given, else the cached
+    render of its resolved spec, rendering it first when missing."""
+    if scene_cfg.get("path"):
+        return Path(str(scene_cfg["path"])).expanduser()
+    spec = resolve_scene(scene_cfg)
+    folder = dataset_folder(spec, data_root)
+    if (folder / "scene.json").is_file():
+        log.info("Dataset of '%s' is up to date: %s", spec["name"], folder)
+        return folder
+    return render_dataset(spec, folder, variant=variant, progress=progress)

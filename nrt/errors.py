@@ -1,0 +1,17 @@
+"""User-facing errors: one clear paragraph naming the file or key and the fix.
+
+The command-line tools catch :class:`NrtError` and print its message instead of a
+traceback; anything else is a bug in nrt and keeps its traceback.
+"""
+
+
+class NrtError(Exception):
+    """A mistake in user input (config, scene, dataset) with an actionable message."""
+
+
+class DatasetError(NrtError):
+    """A dataset folder is missing files, holds corrupt data or disagrees with itself."""
+
+
+class SceneError(NrtError):
+    """A scene specification is inconsistent or out of range."""
