@@ -39,6 +39,21 @@ class Intrinsics:
         return 2 * math.atan(0.5 * self.width / self.fx)
 
 
+def camera_rays(c2w: torch.Tensor, intr: Intrinsics, x: torch.Tensor, y: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Origins and unit view directions (..., 3) through image points ``(x, y)`` (...).
+
+    ``x`` runs right along a row and ``y`` down a column, in pixels (pixel centres at
+    ``+0.5``); ``c2w`` is (4, 4) or broadcasts as (..., 4, 4).
+    """
+    d_cam = torch.stack(
+        ((x - intr.cx) / intr.fx, -(y - intr.cy) / intr.fy, -torch.ones_like(x)), -1
+    )
+    d = (c2w[..., :3, :3] @ d_cam.unsqueeze(-1)).squeeze(-1)
+    d = d / d.norm(dim=-1, keepdim=True)
+    return c2w[..., :3, 3].expand_as(d), d
+
+
 def pixel_rays(
     c2w: torch.Tensor, intr: Intrinsics, offsets: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -53,14 +68,7 @@ def pixel_rays(
     y, x = torch.meshgrid(rows, cols, indexing="ij")
     if offsets is None:
         offsets = torch.tensor([0.5, 0.5], dtype=dtype, device=device)
-    x = x + offsets[..., 0]
-    y = y + offsets[..., 1]
-    d_cam = torch.stack(
-        ((x - intr.cx) / intr.fx, -(y - intr.cy) / intr.fy, -torch.ones_like(x)), -1
-    )
-    d = d_cam @ c2w[:3, :3].T
-    d = d / d.norm(dim=-1, keepdim=True)
-    return c2w[:3, 3].expand_as(d), d
+    return camera_rays(c2w, intr, x + offsets[..., 0], y + offsets[..., 1])
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = None) -> np.ndarray:

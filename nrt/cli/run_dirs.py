@@ -1,0 +1,36 @@
+"""Run folders ``outputs/<scene>/<stage>/<timestamp>-<pid>``: new for every run, or the
+newest one with a checkpoint when resuming, so a resumed run continues in its own folder."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+LAST_CKPT = Path("checkpoints") / "last.ckpt"
+
+_chosen: dict[tuple[str, str], str] = {}
+
+
+def new_run_dir(base: str | Path) -> str:
+    """``<base>/<timestamp>-<pid>``: unique, so runs never overwrite each other."""
+    return f"{base}/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}"
+
+
+def latest_run_with_checkpoint(base: str | Path) -> Path | None:
+    """The run folder under ``base`` whose ``checkpoints/last.ckpt`` is newest."""
+    runs = [p.parent.parent for p in Path(base).glob(f"*/{LAST_CKPT}")]
+    return max(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime, default=None)
+
+
+def run_dir(base: str, resume) -> str:
+    """Resolver ``${nrt_run_dir:base,resume}``; the same answer for the whole process."""
+    key = (str(base), str(resume))
+    if key not in _chosen:
+        chosen = None
+        if resume is True:
+            chosen = latest_run_with_checkpoint(base)
+        elif resume not in (None, False) and Path(str(resume)).is_file():
+            chosen = Path(str(resume)).resolve().parent.parent
+        _chosen[key] = str(chosen) if chosen is not None else new_run_dir(base)
+    return _chosen[key]

@@ -1,0 +1,64 @@
+"""``nrt-train``: train one stage on a scene (rendering its dataset first when missing).
+
+Short and linear, in the lightning-hydra-template manner: compose, seed, data, model,
+callbacks, loggers, trainer, fit (resuming when asked), export.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import hydra
+import lightning as L
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from nrt.cli.common import run_app
+from nrt.cli.run_dirs import LAST_CKPT
+from nrt.data.render import ensure_dataset
+from nrt.errors import NrtError
+
+log = logging.getLogger(__name__)
+
+def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
+    """Checkpoint to continue from: ``resume=true`` -> this run folder's last.ckpt (the
+    run-dir resolver picked the latest run), ``resume=<path>`` -> that file."""
+    if cfg.resume in (None, False):
+        return None
+    ckpt = run_dir / LAST_CKPT if cfg.resume is True else Path(str(cfg.resume))
+    if not ckpt.is_file():
+        raise NrtError(f"resume={cfg.resume}: no checkpoint at '{ckpt}'. resume=true continues "
+                       f"the newest run of scene '{cfg.scene.name}', stage '{cfg.stage.name}' "
+                       "that saved checkpoints/last.ckpt; pass resume=<path/to/file.ckpt> for "
+                       "another, or drop resume to start afresh.")
+    return str(ckpt)
+
+
+def train_task(cfg: DictConfig) -> dict:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    L.seed_everything(cfg.seed, workers=True)
+    dataset_dir = ensure_dataset(OmegaConf.to_container(cfg.scene, resolve=True),
+                                 cfg.paths.data_dir, variant=cfg.render.variant,
+                                 progress=cfg.render.progress)
+    datamodule = hydra.utils.instantiate(cfg.data, dataset_dir=str(dataset_dir))
+    model = hydra.utils.instantiate(cfg.model, _convert_="all")
+    callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
+    loggers = [hydra.utils.instantiate(lg) for lg in cfg.logger.values()]
+    trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers)
+    ckpt = resume_checkpoint(cfg, run_dir)
+    log.info("Run folder %s; dataset %s%s", run_dir, dataset_dir,
+             f"; resuming from {ckpt}" if ckpt else "")
+    trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
+    exports = model.export(run_dir) if hasattr(model, "export") else {}
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    log.info("Finished: %s", {k: round(v, 4) for k, v in metrics.items()})
+    return {"run_dir": str(run_dir), "metrics": metrics, "exports": exports}
+
+
+def main() -> None:
+    run_app(train_task, "train")
+
+
+if __name__ == "__main__":
+    main()

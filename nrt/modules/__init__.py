@@ -1,0 +1,1 @@
+"""Networks (hash grid, fields) and the LightningModules of each stage."""

@@ -1,0 +1,162 @@
+"""Stage 1: the emission-absorption LightningModule (``nrt-train stage=ea``).
+
+Renders camera rays through an :class:`~nrt.modules.ea_field.EAField` inside the medium
+box with stratified jittered samples, alpha-composites them in front of the known
+background ``E(v)`` and fits the photos (MSE after the log tonemap: HDR pixels would
+otherwise let the sun's glints dominate). Validation renders held-out views and
+compares the learned density with the ground-truth extinction where available.
+"""
+
+from __future__ import annotations
+
+
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+
+from nrt.metrics import density_agreement, psnr
+from nrt.modules.ea_field import EAField
+from nrt.physics.compositing import alpha_composite, stratified_samples
+from nrt.physics.tonemap import log_tonemap, luminance
+from nrt.physics.volume import ray_box_intersect
+
+
+PHOTOMETRIC_LOSSES = {
+    "log_mse": lambda pred, ref: torch.mean((log_tonemap(pred) - log_tonemap(ref)) ** 2),
+    "mse": lambda pred, ref: torch.mean((pred - ref) ** 2),
+}
+
+
+def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
+                background: torch.Tensor, n_samples: int, jitter: bool,
+                chunk: int | None = None) -> torch.Tensor:
+    """EA radiance ``L(o, -v)`` (R, 3) of view rays; rays missing the box see ``E(v)``."""
+    if chunk and origins.shape[0] > chunk:
+        return torch.cat([render_rays(field, origins[i:i + chunk], dirs[i:i + chunk],
+                                      background[i:i + chunk], n_samples, jitter)
+                          for i in range(0, origins.shape[0], chunk)])
+    t0, t1, hit = ray_box_intersect(origins, dirs, field.bbox)
+    out = background.clone()
+    if hit.any():
+        o, d = origins[hit], dirs[hit]
+        t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
+        pts = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
+        sigma, rgb = field(pts, d.unsqueeze(1).expand_as(pts))
+        out[hit], _ = alpha_composite(sigma, delta, rgb, background[hit])
+    return out
+
+
+def grid_points(resolution: int, bbox: torch.Tensor) -> torch.Tensor:
+    """Cell centres (R, R, R, 3) of the box, indexed [z, y, x] like the ground truth."""
+    axes = [bbox[0, a] + (torch.arange(resolution, dtype=bbox.dtype, device=bbox.device) + 0.5)
+            / resolution * (bbox[1, a] - bbox[0, a]) for a in range(3)]
+    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return torch.stack((x, y, z), -1)
+
+
+class EAModule(L.LightningModule):
+    """Fits an :class:`EAField` to the training photos of a scene."""
+
+    def __init__(self, field: dict, samples_per_ray: int = 64, loss: str = "log_mse",
+                 lr: float = 1e-2,
+                 eps: float = 1e-15, weight_decay: float = 1e-6, eval_chunk: int = 8192,
+                 density_resolution: int | None = None):
+        super().__init__()
+        self.save_hyperparameters()
+        if loss not in PHOTOMETRIC_LOSSES:
+            raise ValueError(f"losses.photometric must be one of {sorted(PHOTOMETRIC_LOSSES)}, "
+                             f"got '{loss}'")
+        self.photometric = PHOTOMETRIC_LOSSES[loss]
+        self.field = EAField(**field)
+        self._baseline_psnr: dict[int, float] = {}
+
+    def setup(self, stage: str) -> None:
+        dm = self.trainer.datamodule if self.trainer is not None else None
+        if dm is not None:
+            self.field.bbox.copy_(dm.bbox.to(self.field.bbox))
+
+    def configure_optimizers(self):
+        enc = list(self.field.encoding.parameters())
+        enc_ids = {id(p) for p in enc}
+        rest = [p for p in self.field.parameters() if id(p) not in enc_ids]
+        return torch.optim.Adam(
+            [{"params": enc}, {"params": rest, "weight_decay": self.hparams.weight_decay}],
+            lr=self.hparams.lr, eps=self.hparams.eps, betas=(0.9, 0.99))
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        pred = render_rays(self.field, batch["origins"], batch["dirs"], batch["background"],
+                           self.hparams.samples_per_ray, jitter=True)
+        loss = self.photometric(pred, batch["rgb"])
+        self.log("train/loss", loss, prog_bar=True)
+        return loss
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        h, w = batch["shape"]
+        pred = render_rays(self.field, batch["origins"], batch["dirs"], batch["background"],
+                           self.hparams.samples_per_ray, jitter=False,
+                           chunk=self.hparams.eval_chunk)
+        ref = batch["rgb"]
+        self.log("val/psnr", psnr(pred, ref), batch_size=1)
+        view = int(batch["view"])
+        if view not in self._baseline_psnr:  # medium-free prediction: background only
+            self._baseline_psnr[view] = float(psnr(batch["background"], ref))
+        self.log("val/psnr_background_only", self._baseline_psnr[view], batch_size=1)
+        if batch_idx == 0:
+            self._log_image("val/render_vs_truth",
+                            torch.cat((pred.reshape(h, w, 3), ref.reshape(h, w, 3)), 1))
+
+    @torch.no_grad()
+    def density_grid(self, resolution: int) -> torch.Tensor:
+        """Learned density (R, R, R) at the box's cell centres, indexed [z, y, x]."""
+        pts = grid_points(resolution, self.field.bbox).reshape(-1, 3)
+        chunk = self.hparams.eval_chunk * 8
+        dens = torch.cat([self.field.density(pts[i:i + chunk])
+                          for i in range(0, len(pts), chunk)])
+        return dens.reshape(resolution, resolution, resolution)
+
+    def on_validation_epoch_end(self) -> None:
+        gt = self.trainer.datamodule.ground_truth if self.trainer.datamodule else None
+        if gt is None:
+            return
+        sigma_t = luminance(gt["sigma_a"] + gt["sigma_s"]).to(self.device)
+        learned = self.density_grid(sigma_t.shape[0])
+        agree = density_agreement(learned, sigma_t)
+        self.log("val/density_corr", agree["corr"])
+        self.log("val/density_rel_err", agree["rel_err"])
+        mid = sigma_t.shape[0] // 2
+        scale = sigma_t.max().clamp_min(1e-8)
+        panel = torch.cat((learned[mid], sigma_t[mid]), 1) / scale
+        self._log_image("val/density_slice_vs_truth", panel.clamp(0, 1).unsqueeze(-1).expand(
+            -1, -1, 3))
+
+    def _log_image(self, tag: str, img: torch.Tensor) -> None:
+        """Log an (H, W, 3) image to every TensorBoard logger (log tonemap, max -> 1)."""
+        y = log_tonemap(img.detach().float().cpu())
+        y = (y / y.max().clamp_min(1e-8)).clamp(0, 1)
+        for logger in self.loggers:
+            writer = getattr(logger, "experiment", None)
+            if hasattr(writer, "add_image"):
+                writer.add_image(tag, y.numpy(), self.global_step, dataformats="HWC")
+
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """Write ``density_grid.npz`` (``density`` [z, y, x] per unit length, ``bbox``) at
+        ``density_resolution`` (default: the ground truth's, else 64) into ``run_dir``."""
+        res = self.hparams.density_resolution
+        if res is None:
+            dm = self.trainer.datamodule if self._trainer is not None else None
+            gt = dm.ground_truth if dm is not None else None
+            res = gt["g"].shape[0] if gt is not None else 64
+        path = Path(run_dir) / "density_grid.npz"
+        np.savez_compressed(path, density=self.density_grid(res).cpu().numpy(),
+                            bbox=self.field.bbox.cpu().numpy())
+        return {"density_grid": str(path)}
+
+
+def load_ea_field(ckpt_path: str, map_location: str | torch.device = "cpu") -> EAField:
+    """The trained EA field of a stage-1 checkpoint (for stage 2's density queries)."""
+    module = EAModule.load_from_checkpoint(ckpt_path, map_location=map_location)
+    return module.field
+
+

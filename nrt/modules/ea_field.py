@@ -1,0 +1,70 @@
+"""Emission-absorption field: density and colour from a hash grid and two small MLPs.
+
+Stage 1 of nrt (the paper's EA NeRF): its colour is discarded and its density
+``rho_EA(x)`` (per unit length, world units) seeds the medium of stage 2, which queries
+it through :meth:`EAField.density`. Points are world coordinates inside ``bbox``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from nrt.modules.activations import DENSITY_ACTIVATIONS
+from nrt.modules.hash_grid import HashGrid
+
+
+def mlp(n_in: int, hidden: int, n_out: int, layers: int) -> nn.Sequential:
+    """``layers`` hidden ReLU layers of width ``hidden`` and a linear output."""
+    dims = [n_in] + [hidden] * layers
+    mods: list[nn.Module] = []
+    for a, b in zip(dims[:-1], dims[1:], strict=True):
+        mods += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*mods, nn.Linear(dims[-1], n_out))
+
+
+def sh_deg2(d: torch.Tensor) -> torch.Tensor:
+    """Real spherical-harmonic basis up to degree 2 (9 values) of unit directions."""
+    x, y, z = d.unbind(-1)
+    return torch.stack((
+        torch.full_like(x, 0.28209479), 0.48860251 * y, 0.48860251 * z, 0.48860251 * x,
+        1.09254843 * x * y, 1.09254843 * y * z, 0.31539157 * (3 * z * z - 1),
+        1.09254843 * x * z, 0.54627421 * (x * x - y * y)), -1)
+
+
+class EAField(nn.Module):
+    """``(x, w) -> (sigma, rgb)``: density per unit length (>= 0) and HDR colour (>= 0)."""
+
+    def __init__(self, hash_grid: dict | None = None, hidden: int = 64, layers: int = 1,
+                 geo_features: int = 15, density_activation: str = "trunc_exp",
+                 density_bias: float = -1.0):
+        super().__init__()
+        self.encoding = HashGrid(**(hash_grid or {}))
+        self.density_net = mlp(self.encoding.output_dim, hidden, 1 + geo_features, layers)
+        self.color_net = mlp(geo_features + 9, hidden, 3, layers)
+        if density_activation not in DENSITY_ACTIVATIONS:
+            raise ValueError(f"model.field.density_activation must be one of "
+                             f"{sorted(DENSITY_ACTIVATIONS)}, got '{density_activation}'")
+        self.activation = DENSITY_ACTIVATIONS[density_activation]
+        self.density_bias = density_bias
+        self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
+
+    def _features(self, x: torch.Tensor, latent: torch.Tensor | None) -> torch.Tensor:
+        if latent is not None:
+            raise NotImplementedError("latent-conditioned EA fields arrive with the generative "
+                                      "variant (multiplicative modulation of the hash features)")
+        unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0])
+        h = self.density_net(self.encoding(unit))
+        return h
+
+    def density(self, x: torch.Tensor, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """Density ``rho_EA`` (...,) at world points ``x`` (..., 3); stage 2 calls this."""
+        return self.activation(self._features(x, latent)[..., 0] + self.density_bias)
+
+    def forward(self, x: torch.Tensor, d: torch.Tensor, latent: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Density (...,) and colour (..., 3) at points ``x`` seen along view directions ``d``."""
+        h = self._features(x, latent)
+        sigma = self.activation(h[..., 0] + self.density_bias)
+        rgb = nn.functional.softplus(self.color_net(torch.cat((h[..., 1:], sh_deg2(d)), -1)))
+        return sigma, rgb
