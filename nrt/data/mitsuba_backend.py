@@ -24,7 +24,8 @@ _PROBE = (
     "import mitsuba as mi; mi.set_variant('{v}'); "
     "s = mi.load_dict({{'type': 'scene', 'integrator': {{'type': 'path'}}, "
     "'shape': {{'type': 'sphere'}}, "
-    "'sensor': {{'type': 'perspective', 'film': {{'type': 'hdrfilm', 'width': 4, 'height': 4}}}}}}); "
+    "'sensor': {{'type': 'perspective', "
+    "'film': {{'type': 'hdrfilm', 'width': 4, 'height': 4}}}}}}); "
     "mi.render(s, spp=1)"
 )
 _chosen_variant: str | None = None

@@ -9,7 +9,6 @@ compares the learned density with the ground-truth extinction where available.
 
 from __future__ import annotations
 
-
 from pathlib import Path
 
 import lightning as L
@@ -21,7 +20,6 @@ from nrt.modules.ea_field import EAField
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.tonemap import log_tonemap, luminance
 from nrt.physics.volume import ray_box_intersect
-
 
 PHOTOMETRIC_LOSSES = {
     "log_mse": lambda pred, ref: torch.mean((log_tonemap(pred) - log_tonemap(ref)) ** 2),

@@ -1,0 +1,139 @@
+"""Stage 1 (EA) end to end: the real CLI on the tiny preset, kill + resume, and hard
+cases (dense and near-empty media) that must never put NaN or Inf in the parameters."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from nrt.cli.common import CONFIG_DIR, register_resolvers
+from nrt.data.datamodule import RayDataModule
+from nrt.data.render import ensure_dataset
+from nrt.modules.ea import EAModule
+
+NRT_TRAIN = [sys.executable, "-m", "nrt.cli.train"]
+
+
+def read_csv_metrics(run_dir: Path) -> list[dict]:
+    with open(run_dir / "csv" / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def last_value(rows: list[dict], key: str) -> float:
+    return [float(r[key]) for r in rows if r.get(key)][-1]
+
+
+def run_train(out: Path, *overrides: str, timeout: int = 240) -> subprocess.CompletedProcess:
+    env = {**os.environ, "NRT_OUTPUT_DIR": str(out)}
+    return subprocess.run([*NRT_TRAIN, "stage=ea", "preset=tiny", "logger=[tensorboard,csv]",
+                           "render.progress=false", "trainer.enable_progress_bar=false",
+                           *overrides], env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def only_run_dir(out: Path) -> Path:
+    runs = sorted((out / "default" / "ea").iterdir())
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+def test_tiny_ea_trains_via_cli_and_beats_background(tmp_path):
+    start = time.perf_counter()
+    proc = run_train(tmp_path)
+    seconds = time.perf_counter() - start
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    run = only_run_dir(tmp_path)
+    rows = read_csv_metrics(run)
+    psnr, baseline = last_value(rows, "val/psnr"), last_value(rows, "val/psnr_background_only")
+    # The background alone explains the sky around the cloud; a learned medium must add
+    # a clear margin on held-out views (measured: ~35 dB vs ~26 dB).
+    assert psnr > baseline + 5.0, (psnr, baseline)
+    assert last_value(rows, "val/density_corr") > 0.7
+    assert last_value(rows, "time/wall_s") > 0
+    assert (run / "checkpoints" / "last.ckpt").is_file()
+    assert list((run / "tensorboard").glob("events.out.tfevents.*"))
+    with np.load(run / "density_grid.npz") as grid:
+        assert grid["density"].shape == (32, 32, 32) and np.isfinite(grid["density"]).all()
+    # Dataset rendering included (first run in this folder), but it must stay a quick job.
+    assert seconds < 90, seconds
+
+
+def test_killed_run_resumes_in_same_folder(tmp_path):
+    env = {**os.environ, "NRT_OUTPUT_DIR": str(tmp_path)}
+    cmd = [*NRT_TRAIN, "stage=ea", "preset=tiny", "logger=csv", "render.progress=false",
+           "trainer.enable_progress_bar=false", "budget.steps=100000",
+           "budget.checkpoint_every=10", "budget.val_every=1000"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 180
+        ckpts = []
+        while time.time() < deadline and not ckpts:
+            ckpts = list(tmp_path.glob("default/ea/*/checkpoints/last.ckpt"))
+            time.sleep(0.5)
+        assert ckpts, "no checkpoint appeared"
+        time.sleep(1.0)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    run = only_run_dir(tmp_path)
+    saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
+    step, clock = saved["global_step"], saved["callbacks"]["WallClock"]["elapsed"]
+    assert step >= 10
+    done = run_train(tmp_path, "resume=true", f"budget.steps={step + 20}",
+                     "budget.checkpoint_every=10", "logger=csv")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert only_run_dir(tmp_path) == run  # continued in place, no new run folder
+    resumed = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False,
+                         map_location="cpu")
+    assert resumed["global_step"] == step + 20
+    assert resumed["callbacks"]["WallClock"]["elapsed"] > clock
+
+
+def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
+    proc = run_train(tmp_path, "resume=true")
+    assert proc.returncode == 2
+    assert "nrt: error: resume=True" in proc.stderr and "Traceback" not in proc.stderr
+
+
+class _AssertFinite(L.Callback):
+    """Fails on the first step whose parameters or gradients hold NaN or Inf."""
+
+    def on_before_optimizer_step(self, trainer, pl_module, optimizer):
+        for name, p in pl_module.named_parameters():
+            assert p.grad is None or torch.isfinite(p.grad).all(), f"grad of {name}"
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        assert torch.isfinite(outputs["loss"])
+        for name, p in pl_module.named_parameters():
+            assert torch.isfinite(p).all(), name
+
+
+@pytest.mark.parametrize("max_extinction,name", [(50.0, "dense"), (1e-4, "near_empty")])
+def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, name):
+    register_resolvers()
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+        cfg = compose("train", overrides=[
+            "preset=tiny", f"scene.name={name}", f"scene.medium.max_extinction={max_extinction}",
+            "scene.cameras.width=16", "scene.cameras.height=16", "scene.spp=8"])
+    scene = OmegaConf.to_container(cfg.scene, resolve=True)
+    folder = ensure_dataset(scene, tmp_path, progress=False)
+    model_cfg = OmegaConf.to_container(cfg.model, resolve=False)
+    model_cfg["field"]["hash_grid"] = {"levels": 8, "log2_table_size": 15}
+    model = EAModule(field=model_cfg["field"], samples_per_ray=32)
+    dm = RayDataModule(str(folder), batch_size=512, steps_per_epoch=200, val_views=1)
+    trainer = L.Trainer(max_steps=200, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
+                        callbacks=[_AssertFinite()])
+    trainer.fit(model, datamodule=dm)
+    assert trainer.global_step == 200
+    assert torch.isfinite(model.density_grid(16)).all()
