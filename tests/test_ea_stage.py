@@ -13,10 +13,9 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
+from conftest import compose_config
 from omegaconf import OmegaConf
 
-from nrt.cli.common import CONFIG_DIR, register_resolvers
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
 from nrt.modules.ea import EAModule
@@ -33,11 +32,18 @@ def last_value(rows: list[dict], key: str) -> float:
     return [float(r[key]) for r in rows if r.get(key)][-1]
 
 
-def run_train(out: Path, *overrides: str, timeout: int = 240) -> subprocess.CompletedProcess:
+def train_command(out: Path, data_root: Path, *overrides: str) -> tuple[list[str], dict]:
+    """``nrt-train stage=ea preset=tiny`` writing runs under ``out`` and reading the
+    session's cached tiny dataset from ``data_root`` (no re-render)."""
     env = {**os.environ, "NRT_OUTPUT_DIR": str(out)}
-    return subprocess.run([*NRT_TRAIN, "stage=ea", "preset=tiny", "logger=[tensorboard,csv]",
-                           "render.progress=false", "trainer.enable_progress_bar=false",
-                           *overrides], env=env, capture_output=True, text=True, timeout=timeout)
+    return [*NRT_TRAIN, "stage=ea", "preset=tiny", "logger=[tensorboard,csv]",
+            f"paths.data_dir={data_root}", "render.progress=false",
+            "trainer.enable_progress_bar=false", *overrides], env
+
+
+def run_train(out: Path, data_root: Path, *overrides: str) -> subprocess.CompletedProcess:
+    cmd, env = train_command(out, data_root, *overrides)
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
 
 
 def only_run_dir(out: Path) -> Path:
@@ -46,9 +52,9 @@ def only_run_dir(out: Path) -> Path:
     return runs[0]
 
 
-def test_tiny_ea_trains_via_cli_and_beats_background(tmp_path):
+def test_tiny_ea_trains_via_cli_and_beats_background(tmp_path, tiny_dataset):
     start = time.perf_counter()
-    proc = run_train(tmp_path)
+    proc = run_train(tmp_path, tiny_dataset.parent)
     seconds = time.perf_counter() - start
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = only_run_dir(tmp_path)
@@ -63,15 +69,13 @@ def test_tiny_ea_trains_via_cli_and_beats_background(tmp_path):
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
     with np.load(run / "density_grid.npz") as grid:
         assert grid["density"].shape == (32, 32, 32) and np.isfinite(grid["density"]).all()
-    # Dataset rendering included (first run in this folder), but it must stay a quick job.
-    assert seconds < 90, seconds
+    # The issue's bound for the whole CLI run (process start-up included) on 2 cores.
+    assert seconds < 60, seconds
 
 
-def test_killed_run_resumes_in_same_folder(tmp_path):
-    env = {**os.environ, "NRT_OUTPUT_DIR": str(tmp_path)}
-    cmd = [*NRT_TRAIN, "stage=ea", "preset=tiny", "logger=csv", "render.progress=false",
-           "trainer.enable_progress_bar=false", "budget.steps=100000",
-           "budget.checkpoint_every=10", "budget.val_every=1000"]
+def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
+    cmd, env = train_command(tmp_path, tiny_dataset.parent, "logger=csv", "budget.steps=100000",
+                             "budget.checkpoint_every=10", "budget.val_every=1000")
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 180
@@ -88,7 +92,7 @@ def test_killed_run_resumes_in_same_folder(tmp_path):
     saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
     step, clock = saved["global_step"], saved["callbacks"]["WallClock"]["elapsed"]
     assert step >= 10
-    done = run_train(tmp_path, "resume=true", f"budget.steps={step + 20}",
+    done = run_train(tmp_path, tiny_dataset.parent, "resume=true", f"budget.steps={step + 20}",
                      "budget.checkpoint_every=10", "logger=csv")
     assert done.returncode == 0, done.stderr[-3000:]
     assert only_run_dir(tmp_path) == run  # continued in place, no new run folder
@@ -96,10 +100,14 @@ def test_killed_run_resumes_in_same_folder(tmp_path):
                          map_location="cpu")
     assert resumed["global_step"] == step + 20
     assert resumed["callbacks"]["WallClock"]["elapsed"] > clock
+    # The resumed run kept the first run's config and logged beside it, not over it.
+    assert "budget.steps=100000" in (run / ".hydra" / "overrides.yaml").read_text()
+    assert list(run.glob(".hydra/resumed-*/overrides.yaml"))
+    assert list(run.glob("csv/resumed-*/metrics.csv"))
 
 
-def test_resume_without_checkpoint_is_a_clear_error(tmp_path):
-    proc = run_train(tmp_path, "resume=true")
+def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
+    proc = run_train(tmp_path, tiny_dataset.parent, "resume=true")
     assert proc.returncode == 2
     assert "nrt: error: resume=True" in proc.stderr and "Traceback" not in proc.stderr
 
@@ -119,11 +127,9 @@ class _AssertFinite(L.Callback):
 
 @pytest.mark.parametrize("max_extinction,name", [(50.0, "dense"), (1e-4, "near_empty")])
 def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, name):
-    register_resolvers()
-    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-        cfg = compose("train", overrides=[
-            "preset=tiny", f"scene.name={name}", f"scene.medium.max_extinction={max_extinction}",
-            "scene.cameras.width=16", "scene.cameras.height=16", "scene.spp=8"])
+    cfg = compose_config("train", [
+        "preset=tiny", f"scene.name={name}", f"scene.medium.max_extinction={max_extinction}",
+        "scene.cameras.width=16", "scene.cameras.height=16", "scene.spp=8"])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
     folder = ensure_dataset(scene, tmp_path, progress=False)
     model_cfg = OmegaConf.to_container(cfg.model, resolve=False)

@@ -1,18 +1,24 @@
-"""``nrt-data``: render (or find in the cache) the dataset of a scene and print its folder."""
+"""``nrt-data``: render (or find in the cache) the dataset of a scene and print its folder.
+
+Only the folder goes to stdout (``DATA=$(nrt-data scene=X)``); logs go to stderr. The
+rendering stack (torch, Mitsuba) is imported inside the task, so that ``--cfg``, ``--help``
+and config errors answer at once.
+"""
 
 from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import run_app
-from nrt.data.render import ensure_dataset
 
 
 def render_task(cfg: DictConfig) -> str:
+    from nrt.data.render import ensure_dataset
+
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
     folder = ensure_dataset(scene, cfg.paths.data_dir, variant=cfg.render.variant,
                             progress=cfg.render.progress)
-    print(folder)
+    print(folder, flush=True)
     return str(folder)
 
 

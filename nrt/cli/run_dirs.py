@@ -1,5 +1,10 @@
 """Run folders ``outputs/<scene>/<stage>/<timestamp>-<pid>``: new for every run, or the
-newest one with a checkpoint when resuming, so a resumed run continues in its own folder."""
+newest one with a checkpoint when resuming, so a resumed run continues in its own folder.
+
+A resumed run must not overwrite what the first one wrote: its Hydra config goes to
+``.hydra/<tag>/`` and its CSV log to ``csv/<tag>/``, with ``tag = resumed-<timestamp>``
+(:func:`resume_tag`); TensorBoard adds new event files beside the old ones.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ from pathlib import Path
 LAST_CKPT = Path("checkpoints") / "last.ckpt"
 
 _chosen: dict[tuple[str, str], str] = {}
+_tags: dict[str, str] = {}
 
 
 def new_run_dir(base: str | Path) -> str:
@@ -34,3 +40,10 @@ def run_dir(base: str, resume) -> str:
             chosen = Path(str(resume)).resolve().parent.parent
         _chosen[key] = str(chosen) if chosen is not None else new_run_dir(base)
     return _chosen[key]
+
+
+def resume_tag(resume) -> str:
+    """Resolver ``${nrt_resume_tag:resume}``: ``""`` for a new run, else ``resumed-<time>``."""
+    if resume in (None, False):
+        return ""
+    return _tags.setdefault(str(resume), f"resumed-{time.strftime('%Y-%m-%d_%H-%M-%S')}")

@@ -1,7 +1,9 @@
 """``nrt-train``: train one stage on a scene (rendering its dataset first when missing).
 
 Short and linear, in the lightning-hydra-template manner: compose, seed, data, model,
-callbacks, loggers, trainer, fit (resuming when asked), export.
+callbacks, loggers, trainer, fit (resuming when asked), export. Lightning, torch and
+Mitsuba are imported inside the task, so ``--cfg``, ``--help`` and config errors answer
+at once.
 """
 
 from __future__ import annotations
@@ -10,16 +12,15 @@ import logging
 from pathlib import Path
 
 import hydra
-import lightning as L
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import run_app
 from nrt.cli.run_dirs import LAST_CKPT
-from nrt.data.render import ensure_dataset
 from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)
+
 
 def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
     """Checkpoint to continue from: ``resume=true`` -> this run folder's last.ckpt (the
@@ -36,6 +37,10 @@ def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
 
 
 def train_task(cfg: DictConfig) -> dict:
+    import lightning as L
+
+    from nrt.data.render import ensure_dataset
+
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     L.seed_everything(cfg.seed, workers=True)
     dataset_dir = ensure_dataset(OmegaConf.to_container(cfg.scene, resolve=True),

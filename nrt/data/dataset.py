@@ -76,14 +76,36 @@ def _read_json(path: Path) -> dict:
     return data
 
 
+def _number(meta: dict, key: str, path: Path, default: float | None = None) -> float:
+    value = meta.get(key, default)
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not math.isfinite(x):
+        raise _fail(path, f"'{key}' must be a finite number, got {value!r}.")
+    return x
+
+
 def _intrinsics(meta: dict, path: Path, width: int, height: int) -> Intrinsics:
-    w, h = int(meta.get("w", width)), int(meta.get("h", height))
+    w, h = _number(meta, "w", path, width), _number(meta, "h", path, height)
+    if (w, h) != (width, height):
+        raise _fail(path, f"declares images of {w:g}x{h:g} pixels ('w', 'h') but the images "
+                          f"are {width}x{height}; fix 'w'/'h' or the images.")
     if "fl_x" in meta:
-        fx = float(meta["fl_x"])
-        fy = float(meta.get("fl_y", fx))
-        return Intrinsics(w, h, fx, fy, float(meta.get("cx", w / 2)), float(meta.get("cy", h / 2)))
+        fx = _number(meta, "fl_x", path)
+        fy = _number(meta, "fl_y", path, fx)
+        if fx <= 0 or fy <= 0:
+            raise _fail(path, f"focal lengths 'fl_x' = {fx:g} and 'fl_y' = {fy:g} must be "
+                              "positive (pixels).")
+        return Intrinsics(width, height, fx, fy, _number(meta, "cx", path, width / 2),
+                          _number(meta, "cy", path, height / 2))
     if "camera_angle_x" in meta:
-        return Intrinsics.from_fov_x(w, h, float(meta["camera_angle_x"]))
+        angle = _number(meta, "camera_angle_x", path)
+        if not 0 < angle < math.pi:
+            raise _fail(path, f"'camera_angle_x' = {angle:g} must be the horizontal field of "
+                              "view in radians, between 0 and pi.")
+        return Intrinsics.from_fov_x(width, height, angle)
     raise _fail(path, "has neither 'camera_angle_x' nor 'fl_x'; add the horizontal field of "
                       "view in radians ('camera_angle_x') or focal lengths in pixels.")
 
@@ -97,16 +119,24 @@ def _environments(meta: dict, path: Path, root: Path) -> tuple[list[str], list[E
     names = list(envs)
     maps = []
     for name in names:
-        radiance = torch.from_numpy(read_exr(root / envs[name]))
+        file = root / str(envs[name])
+        if not isinstance(envs[name], str) or not file.is_file():
+            raise _fail(path, f"environments.{name} names the map {envs[name]!r}, but "
+                              f"'{file}' does not exist; fix the entry (a path relative to the "
+                              "dataset folder) or add the equirectangular EXR there.")
+        radiance = torch.from_numpy(read_exr(file))
         try:
             maps.append(EnvironmentMap(radiance))
         except ValueError as exc:
-            raise _fail(root / envs[name], f"{exc}.") from exc
+            raise _fail(file, f"{exc}; it is environments.{name} of {path.name}.") from exc
     return names, maps
 
 
 def _frame_matrix(frame: dict, k: int, path: Path) -> np.ndarray:
-    m = np.asarray(frame.get("transform_matrix", []), dtype=float)
+    try:
+        m = np.asarray(frame.get("transform_matrix", []), dtype=float)
+    except (TypeError, ValueError):
+        m = np.full(0, np.nan)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise _fail(path, f"frames[{k}].transform_matrix must be a finite 4x4 matrix.")
     if not np.allclose(m[3], [0, 0, 0, 1]):
@@ -124,14 +154,17 @@ def _ground_truth(root: Path) -> dict[str, torch.Tensor] | None:
         with np.load(path) as data:
             arrays = {k: data[k] for k in ("sigma_a", "sigma_s", "g") if k in data}
     except Exception as exc:
-        raise _fail(path, f"cannot be read ({exc}); re-export it.") from exc
+        raise _fail(path, f"is not a readable NumPy .npz archive ({exc}); re-export it with "
+                          "numpy.savez (sigma_a, sigma_s, g) or remove it.") from exc
     missing = {"sigma_a", "sigma_s", "g"} - set(arrays)
     if missing:
         raise _fail(path, f"lacks arrays {sorted(missing)}; it needs sigma_a, sigma_s "
                           "(Nz, Ny, Nx, 3) and g (Nz, Ny, Nx).")
     grid = arrays["g"].shape
+    if len(grid) != 3:
+        raise _fail(path, f"array 'g' has shape {grid}, expected a grid (Nz, Ny, Nx).")
     for key, want in (("sigma_a", (*grid, 3)), ("sigma_s", (*grid, 3))):
-        if arrays[key].shape != want or len(grid) != 3:
+        if arrays[key].shape != want:
             raise _fail(path, f"array '{key}' has shape {arrays[key].shape}, expected {want} "
                               "with g of shape (Nz, Ny, Nx).")
     for key, a in arrays.items():
@@ -152,9 +185,13 @@ def load_dataset(root: str | Path, split: str = "train") -> SceneDataset:
     if not isinstance(frames, list) or not frames:
         raise _fail(path, "has no 'frames' list (or it is empty).")
     env_names, envmaps = _environments(meta, path, root)
-    bbox = np.asarray(meta.get("medium_bbox", DEFAULT_BBOX), dtype=float)
+    try:
+        bbox = np.asarray(meta.get("medium_bbox", DEFAULT_BBOX), dtype=float)
+    except (TypeError, ValueError):
+        bbox = np.full(0, np.nan)
     if bbox.shape != (2, 3) or not np.all(bbox[1] > bbox[0]):
-        raise _fail(path, "'medium_bbox' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]].")
+        raise _fail(path, "'medium_bbox' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] "
+                          f"with max > min, got {meta.get('medium_bbox')!r}.")
     images, mats, env_index = [], [], []
     for k, frame in enumerate(frames):
         if not isinstance(frame, dict) or "file_path" not in frame:
@@ -173,6 +210,10 @@ def load_dataset(root: str | Path, split: str = "train") -> SceneDataset:
         file = root / str(frame["file_path"])
         if file.suffix.lower() != ".exr":
             file = file.with_name(file.name + ".exr")
+        if not file.is_file():
+            raise _fail(path, f"frames[{k}].file_path is {frame['file_path']!r}, but '{file}' "
+                              "does not exist; fix the entry (relative to the dataset folder, "
+                              "'.exr' may be left out) or re-render the dataset with nrt-data.")
         img = read_exr(file)
         if images and img.shape != images[0].shape:
             raise _fail(file, f"is {img.shape[1]}x{img.shape[0]} pixels but "
@@ -183,11 +224,6 @@ def load_dataset(root: str | Path, split: str = "train") -> SceneDataset:
         env_index.append(env_names.index(env))
     height, width = images[0].shape[:2]
     intr = _intrinsics(meta, path, width, height)
-    if (intr.width, intr.height) != (width, height):
-        raise _fail(path, f"declares images of {intr.width}x{intr.height} pixels (w, h) but "
-                          f"the images are {width}x{height}; fix 'w'/'h' or the images.")
-    if not (math.isfinite(intr.fx) and intr.fx > 0 and intr.fy > 0):
-        raise _fail(path, "focal length must be positive and finite.")
     spec = None
     if (root / "scene.json").is_file():
         spec = _read_json(root / "scene.json").get("spec")

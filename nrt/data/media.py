@@ -7,7 +7,10 @@ diffuse (1.5) to sharp-edged (12). It scales the element's RGB ``sigma_a`` and `
 (per unit length). Overlapping elements add their coefficients; the phase function at a
 point is one Henyey-Greenstein lobe whose ``g`` is the sigma_s-weighted mean of the
 elements' ``g`` (channel-mean sigma_s as weight), i.e. the mixture's mean cosine. A window
-fades all density to zero in the outer 5% of the box, so nothing is cut by its faces.
+fades all density to zero in the outer 5% of the box, so nothing is cut by its faces: it
+reaches zero at the outermost cell centres, because renderers interpolate the cell-centred
+grid and clamp at the faces (Mitsuba's ``gridvolume``), i.e. the face takes the value of
+the outermost cells.
 """
 
 from __future__ import annotations
@@ -33,9 +36,11 @@ def _smoothstep(t: np.ndarray) -> np.ndarray:
     return t * t * (3 - 2 * t)
 
 
-def box_window(p: np.ndarray, margin: float = 0.05) -> np.ndarray:
-    """1 inside the box, falling smoothly to 0 at its faces (``p`` box-normalised)."""
-    return np.prod(_smoothstep((1 - np.abs(p)) / (2 * margin)), axis=-1)
+def box_window(p: np.ndarray, margin: float = 0.05, inset: float = 0.0) -> np.ndarray:
+    """1 inside the box, falling smoothly to 0 at distance ``inset`` from its faces and
+    staying 0 beyond (``p`` box-normalised, so the faces are at +-1)."""
+    t = (1 - inset - np.abs(p)) / (2 * margin)
+    return np.prod(_smoothstep(np.where(t < 1e-9, 0.0, t)), axis=-1)  # exact 0 despite rounding
 
 
 def element_density(p: np.ndarray, element: dict) -> np.ndarray:
@@ -60,7 +65,7 @@ def medium_grids(spec: dict) -> dict[str, np.ndarray]:
     res = int(spec["medium"]["resolution"])
     world = cell_centres(res, bbox).reshape(-1, 3)
     p = 2 * (world - bbox[0]) / (bbox[1] - bbox[0]) - 1
-    window = box_window(p)
+    window = box_window(p, inset=1.0 / res)  # zero on the outermost cell centres
     sigma_a = np.zeros((len(p), 3))
     sigma_s = np.zeros((len(p), 3))
     g_num = np.zeros(len(p))

@@ -128,14 +128,14 @@ def max_depth(order: int) -> int:
 
 def scene_dict(mi, spec: dict, grids: dict | None, envmap: np.ndarray, width: int,
                height: int, fov_x_deg: float, spp: int) -> dict:
-    """A complete scene: envmap, medium box (if ``grids``), point emitters, one sensor."""
+    """A complete scene: envmap (unless all black), medium box (if ``grids``), point emitters,
+    one sensor."""
     bbox = np.asarray(spec["bbox"], float)
+    envmap = np.ascontiguousarray(envmap, dtype=np.float32)
     scene = {
         "type": "scene",
         "integrator": {"type": "volpath",
                        "max_depth": max_depth(spec["effects"]["max_scattering_order"])},
-        "environment": {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(
-            envmap, dtype=np.float32))},
         "sensor": {
             "type": "perspective", "fov": float(fov_x_deg), "fov_axis": "x",
             "near_clip": 1e-3, "far_clip": 1e4,
@@ -144,6 +144,11 @@ def scene_dict(mi, spec: dict, grids: dict | None, envmap: np.ndarray, width: in
             "sampler": {"type": "independent", "sample_count": int(spp)},
         },
     }
+    if np.any(envmap > 0):
+        # An all-black map is left out: Mitsuba's envmap cannot importance-sample a map
+        # without energy, and next-event estimation from the medium or a surface then turns
+        # pixels into NaN (seen with Mitsuba 3.9.1); without it, the sky is black as wanted.
+        scene["environment"] = {"type": "envmap", "bitmap": mi.Bitmap(envmap)}
     if grids is not None:
         centre, half = (bbox[0] + bbox[1]) / 2, (bbox[1] - bbox[0]) / 2
         scene["medium_box"] = {

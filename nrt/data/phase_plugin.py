@@ -3,8 +3,10 @@
 The plugin takes one nested volume ``g`` (a ``gridvolume`` in world space, or ``constvolume``)
 and evaluates HG(g(x)) at each scattering point. Mitsuba's ``mi.wi`` points back along the
 incoming path, so the cosine between travel directions is ``-dot(wi, wo)`` (nrt.physics.phase
-convention). ``g`` is clamped to |g| <= 0.95 and the inversion sampler switches to the
-isotropic one near g = 0, as :func:`nrt.physics.phase.sample_hg_cos` does.
+convention). ``g`` is clamped to |g| <= 0.95 and, for |g| < 1e-2, the inversion sampler
+uses the second-order Taylor series of the HG inversion in g, as
+:func:`nrt.physics.phase.sample_hg_cos` does (so the sampled density is HG to 1e-6 and the
+returned weight 1 and pdf ``hg(cos, g)`` stay consistent).
 """
 
 from __future__ import annotations
@@ -33,10 +35,11 @@ def make_hg_grid_phase(mi):
 
         def sample(self, ctx, mei, sample1, sample2, active=True):
             g = self._g(mei, active)
-            small = dr.abs(g) < 1e-3
-            g_safe = dr.select(small, 1e-3, g)
+            small = dr.abs(g) < 1e-2
+            g_safe = dr.select(small, 1e-2, g)
             s = (1 - g_safe * g_safe) / (1 - g_safe + 2 * g_safe * sample2.x)
-            cos = dr.select(small, 1 - 2 * sample2.x,
+            a = 2 * sample2.x - 1
+            cos = dr.select(small, a + g * (1 - a * a) * (1.5 - 2 * g * a),
                             (1 + g_safe * g_safe - s * s) / (2 * g_safe))
             cos = dr.clip(cos, -1.0, 1.0)
             sin = dr.safe_sqrt(1 - cos * cos)

@@ -32,7 +32,7 @@ from nrt.data.exr import read_exr, write_exr
 from nrt.data.media import medium_grids
 from nrt.data.sky import sky_map
 from nrt.data.spec import resolve_scene, spec_hash
-from nrt.errors import SceneError
+from nrt.errors import DatasetError, SceneError
 
 log = logging.getLogger(__name__)
 
@@ -46,9 +46,9 @@ def camera_rig(spec: dict) -> tuple[dict[str, np.ndarray], Intrinsics]:
     bbox = np.asarray(spec["bbox"], float)
     centre = bbox.mean(0)
     if cams["radius"] <= np.linalg.norm(bbox[1] - centre):
-        raise SceneError(f"Scene key 'cameras.radius' = {cams['radius']} puts cameras inside or "
-                         "on the medium box; use a radius larger than the box's half diagonal "
-                         f"({np.linalg.norm(bbox[1] - centre):.3f}).")
+        raise SceneError(f"Scene key 'scene.cameras.radius' = {cams['radius']} puts cameras "
+                         "inside or on the medium box; use a radius larger than the box's "
+                         f"half diagonal ({np.linalg.norm(bbox[1] - centre):.3f}).")
     n_train, n_test = cams["num_train"], cams["num_test"]
     pos = centre + sphere_positions(n_train + n_test, cams["radius"], cams["seed"])
     test = np.zeros(len(pos), bool)
@@ -84,15 +84,34 @@ def render_dataset(spec: dict, out_dir: str | Path, variant: str = "auto",
                    progress: bool = True) -> Path:
     """Render every view of ``spec`` under each environment into ``out_dir`` (atomic)."""
     out_dir = Path(out_dir)
+    rigs, intr = camera_rig(spec)  # validates the rig before any work or file is made
     mi = mitsuba_backend.select_variant(variant)
     start = time.perf_counter()
     tmp = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        n_images = _render_into(tmp, spec, rigs, intr, mi, progress)
+        seconds = time.perf_counter() - start
+        info = {"spec": spec, "spec_hash": spec_hash(spec),
+                "renderer": {"mitsuba": mi.__version__, "variant": mi.variant(),
+                             "seconds": round(seconds, 2), "images": n_images}}
+        with open(tmp / "scene.json", "w") as f:
+            json.dump(info, f, indent=1)
+        _move_into_place(tmp, out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # still here only if failed or redundant
+    log.info("Rendered %d images of '%s' in %.1f s with Mitsuba %s (%s) into %s",
+             n_images, spec["name"], seconds, mi.__version__, mi.variant(), out_dir)
+    return out_dir
+
+
+def _render_into(tmp: Path, spec: dict, rigs: dict[str, np.ndarray], intr: Intrinsics, mi,
+                 progress: bool) -> int:
+    """Write ground truth, envmaps, images and transforms of ``spec`` into ``tmp``."""
     (tmp / "envmaps").mkdir(parents=True)
     grids = medium_grids(spec)
     np.savez_compressed(tmp / "ground_truth.npz", bbox=np.asarray(spec["bbox"], np.float32),
                         **grids)
-    rigs, intr = camera_rig(spec)
     cams = spec["cameras"]
     env_files, frames = {}, {split: [] for split in SPLITS}
     n_images = sum(len(r) for r in rigs.values()) * len(spec["environments"])
@@ -117,20 +136,19 @@ def render_dataset(spec: dict, out_dir: str | Path, variant: str = "auto",
     for split in SPLITS:
         with open(tmp / f"transforms_{split}.json", "w") as f:
             json.dump(_transforms(intr, spec["bbox"], env_files, frames[split]), f, indent=1)
-    seconds = time.perf_counter() - start
-    info = {"spec": spec, "spec_hash": spec_hash(spec),
-            "renderer": {"mitsuba": mi.__version__, "variant": mi.variant(),
-                         "seconds": round(seconds, 2), "images": n_images}}
-    with open(tmp / "scene.json", "w") as f:
-        json.dump(info, f, indent=1)
-    if out_dir.exists():  # a concurrent render of the same spec finished first: keep it
-        shutil.rmtree(tmp)
-    else:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(tmp, out_dir)
-    log.info("Rendered %d images of '%s' in %.1f s with Mitsuba %s (%s) into %s",
-             n_images, spec["name"], seconds, mi.__version__, mi.variant(), out_dir)
-    return out_dir
+    return n_images
+
+
+def _move_into_place(tmp: Path, out_dir: Path) -> None:
+    """Rename the finished ``tmp`` to ``out_dir``. A complete ``out_dir`` (a concurrent
+    render of the same spec finished first) is kept; an incomplete one is replaced."""
+    if (out_dir / "scene.json").is_file():
+        return
+    if out_dir.exists():
+        log.warning("Replacing the incomplete dataset folder %s (it has no scene.json)", out_dir)
+        shutil.rmtree(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(tmp, out_dir)
 
 
 def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "auto",
@@ -138,7 +156,12 @@ def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "au
     """The dataset folder of a scene config: ``scene.path`` as given, else the cached
     render of its resolved spec, rendering it first when missing."""
     if scene_cfg.get("path"):
-        return Path(str(scene_cfg["path"])).expanduser()
+        folder = Path(str(scene_cfg["path"])).expanduser()
+        if not folder.is_dir():
+            raise DatasetError(f"Scene key 'scene.path' = '{folder}' is not a dataset folder. "
+                               "Point scene.path at an existing folder (README \"Data format\") or "
+                               "set scene.path=null to render the scene.")
+        return folder
     spec = resolve_scene(scene_cfg)
     folder = dataset_folder(spec, data_root)
     if (folder / "scene.json").is_file():

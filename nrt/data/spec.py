@@ -20,15 +20,16 @@ import numpy as np
 from nrt.data.sky import draw_sky_params
 from nrt.errors import SceneError
 
-FORMAT_VERSION = 1
-"""Bumped whenever rendering or the dataset layout changes meaning (invalidates caches)."""
+FORMAT_VERSION = 2
+"""Bumped whenever rendering or the dataset layout changes meaning (invalidates caches).
+2: the medium's box window reaches zero on the outermost grid cells."""
 
 PHASES = ("isotropic", "hg", "varying_hg")
 
 
 def _require(cond: bool, key: str, message: str) -> None:
     if not cond:
-        raise SceneError(f"Scene key '{key}': {message}")
+        raise SceneError(f"Scene key 'scene.{key}': {message}")
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
