@@ -134,7 +134,7 @@ def test_user_mistake_is_one_paragraph_and_exit_status_2(runs, key):
     assert proc.stdout == ""
     errors = [line for line in proc.stderr.splitlines() if line.startswith("nrt: error:")]
     assert len(errors) == 1, proc.stderr
-    assert f"'{key}'" in errors[0]
+    assert f"'scene.{key}'" in errors[0]  # the key as users type it
     assert proc.stderr.count(errors[0][len("nrt: error: "):]) == 1  # said once, not twice
     data_dir = cwd / "outputs" / "datasets"
     leftovers = [p.name for p in data_dir.iterdir() if p.name != "logs"]

@@ -136,7 +136,7 @@ def test_grey_scene_rejects_coloured_explicit_elements(scene_config):
 def test_out_of_range_keys_raise_scene_error_naming_the_key(scene_config, overrides, key):
     with pytest.raises(SceneError) as info:
         resolve_scene(scene_config(*overrides))
-    assert f"'{key}'" in str(info.value)
+    assert f"'scene.{key}'" in str(info.value)  # the key as users type it
     assert "\n" not in str(info.value)
 
 
@@ -149,14 +149,14 @@ def test_bad_explicit_elements_are_named(scene_config, element, phase, key):
     scene = scene_config(f"scene.effects.phase={phase}")
     with pytest.raises(SceneError) as info:
         with_elements(scene, element)
-    assert f"'{key}'" in str(info.value)
+    assert f"'scene.{key}'" in str(info.value)
 
 
 @pytest.mark.parametrize("overrides", [["scene.cameras.radius=1.7"],
                                        ["scene.bbox=[[-3,-3,-3],[3,3,3]]"]])
 def test_cameras_inside_the_box_are_refused(scene_config, overrides):
     spec = resolve_scene(scene_config(*overrides))
-    with pytest.raises(SceneError, match=r"'cameras\.radius'"):
+    with pytest.raises(SceneError, match=r"'scene\.cameras\.radius'"):
         camera_rig(spec)
 
 
