@@ -16,19 +16,13 @@ the outermost cells.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from nrt.data.noise import fbm
+from nrt.physics.volume import cell_centres
 
 _G_WEIGHT_EPS = 1e-6
 """Keeps ``g`` defined (the plain mean of the elements' g) where no element scatters."""
-
-
-def cell_centres(resolution: int, bbox: np.ndarray) -> np.ndarray:
-    """World positions (R, R, R, 3) of grid cell centres, indexed ``[z, y, x]``."""
-    lo, hi = np.asarray(bbox[0], float), np.asarray(bbox[1], float)
-    axes = [lo[a] + (np.arange(resolution) + 0.5) / resolution * (hi[a] - lo[a]) for a in range(3)]
-    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    return np.stack((x, y, z), -1)
 
 
 def _smoothstep(t: np.ndarray) -> np.ndarray:
@@ -63,7 +57,7 @@ def medium_grids(spec: dict) -> dict[str, np.ndarray]:
     """
     bbox = np.asarray(spec["bbox"], float)
     res = int(spec["medium"]["resolution"])
-    world = cell_centres(res, bbox).reshape(-1, 3)
+    world = cell_centres(res, torch.as_tensor(bbox)).numpy().reshape(-1, 3)
     p = 2 * (world - bbox[0]) / (bbox[1] - bbox[0]) - 1
     window = box_window(p, inset=1.0 / res)  # zero on the outermost cell centres
     sigma_a = np.zeros((len(p), 3))

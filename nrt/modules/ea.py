@@ -19,7 +19,7 @@ from nrt.metrics import density_agreement, psnr
 from nrt.modules.ea_field import EAField
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.tonemap import log_tonemap, luminance
-from nrt.physics.volume import ray_box_intersect
+from nrt.physics.volume import cell_centres, ray_box_intersect
 
 PHOTOMETRIC_LOSSES = {
     "log_mse": lambda pred, ref: torch.mean((log_tonemap(pred) - log_tonemap(ref)) ** 2),
@@ -44,14 +44,6 @@ def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
         sigma, rgb = field(pts, d.unsqueeze(1).expand_as(pts))
         out[hit], _ = alpha_composite(sigma, delta, rgb, background[hit])
     return out
-
-
-def grid_points(resolution: int, bbox: torch.Tensor) -> torch.Tensor:
-    """Cell centres (R, R, R, 3) of the box, indexed [z, y, x] like the ground truth."""
-    axes = [bbox[0, a] + (torch.arange(resolution, dtype=bbox.dtype, device=bbox.device) + 0.5)
-            / resolution * (bbox[1, a] - bbox[0, a]) for a in range(3)]
-    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    return torch.stack((x, y, z), -1)
 
 
 class EAModule(L.LightningModule):
@@ -108,7 +100,7 @@ class EAModule(L.LightningModule):
     @torch.no_grad()
     def density_grid(self, resolution: int) -> torch.Tensor:
         """Learned density (R, R, R) at the box's cell centres, indexed [z, y, x]."""
-        pts = grid_points(resolution, self.field.bbox).reshape(-1, 3)
+        pts = cell_centres(resolution, self.field.bbox).reshape(-1, 3)
         chunk = self.hparams.eval_chunk * 8
         dens = torch.cat([self.field.density(pts[i:i + chunk])
                           for i in range(0, len(pts), chunk)])

@@ -31,6 +31,14 @@ def ray_box_intersect(
     return t_near, t_far, t_far > t_near
 
 
+def cell_centres(resolution: int, bbox: torch.Tensor) -> torch.Tensor:
+    """World positions (R, R, R, 3) of the box's grid cell centres, indexed ``[z, y, x]``."""
+    axes = [bbox[0, a] + (torch.arange(resolution, dtype=bbox.dtype, device=bbox.device) + 0.5)
+            / resolution * (bbox[1, a] - bbox[0, a]) for a in range(3)]
+    z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    return torch.stack((x, y, z), -1)
+
+
 def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) -> torch.Tensor:
     """Trilinear, cell-centred, edge-clamped lookup of ``grid`` (Nz, Ny, Nx, C) at world
     ``points`` (..., 3) in the box ``bbox`` (2, 3). Returns (..., C)."""
