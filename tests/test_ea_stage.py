@@ -71,7 +71,7 @@ def test_tiny_ea_trains_via_cli_and_beats_background(tmp_path, tiny_dataset):
 
 
 def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
-    cmd, env = train_command(tmp_path, tiny_dataset.parent, "logger=csv", "budget.steps=100000",
+    cmd, env = train_command(tmp_path, tiny_dataset.parent, "logger=csv", "budget.ea.steps=100000",
                              "budget.checkpoint_every=10", "budget.val_every=1000")
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -89,7 +89,7 @@ def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
     saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
     step, clock = saved["global_step"], saved["callbacks"]["WallClock"]["elapsed"]
     assert step >= 10
-    done = run_train(tmp_path, tiny_dataset.parent, "resume=true", f"budget.steps={step + 20}",
+    done = run_train(tmp_path, tiny_dataset.parent, "resume=true", f"budget.ea.steps={step + 20}",
                      "budget.checkpoint_every=10", "budget.val_every=1000", "logger=csv")
     assert done.returncode == 0, done.stderr[-3000:]
     assert only_run_dir(tmp_path) == run  # continued in place, no new run folder
@@ -98,7 +98,7 @@ def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
     assert resumed["global_step"] == step + 20
     assert resumed["callbacks"]["WallClock"]["elapsed"] > clock
     # The resumed run kept the first run's config and logged beside it, not over it.
-    assert "budget.steps=100000" in (run / ".hydra" / "overrides.yaml").read_text()
+    assert "budget.ea.steps=100000" in (run / ".hydra" / "overrides.yaml").read_text()
     assert list(run.glob(".hydra/resumed-*/overrides.yaml"))
     assert list(run.glob("csv/resumed-*/metrics.csv"))
 

@@ -16,7 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import run_app
-from nrt.cli.run_dirs import LAST_CKPT
+from nrt.cli.run_dirs import LAST_CKPT, latest_run_with_checkpoint
 from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,23 @@ def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
     return str(ckpt)
 
 
+def resolve_ea_checkpoint(cfg: DictConfig) -> None:
+    """Stage 2 modulates stage 1's density: with ``init.source=ea`` and no
+    ``init.ea_ckpt``, take the newest EA run of the same scene that saved a checkpoint."""
+    if OmegaConf.select(cfg, "model.density.source") != "ea" or cfg.init.ea_ckpt:
+        return
+    base = Path(cfg.paths.output_dir) / cfg.scene.name / "ea"
+    run = latest_run_with_checkpoint(base)
+    if run is None:
+        raise NrtError(f"stage={cfg.stage.name} starts from the EA density of scene "
+                       f"'{cfg.scene.name}', but no EA run under '{base}' saved "
+                       f"{LAST_CKPT}. Run `nrt-train stage=ea scene={cfg.scene.name}` first, "
+                       "pass init.ea_ckpt=<path/to/last.ckpt>, or use init=none for the "
+                       "single-stage ablation.")
+    cfg.init.ea_ckpt = str(run / LAST_CKPT)
+    log.info("Stage 2 starts from EA checkpoint %s", cfg.init.ea_ckpt)
+
+
 def train_task(cfg: DictConfig) -> dict:
     import lightning as L
 
@@ -47,6 +64,7 @@ def train_task(cfg: DictConfig) -> dict:
                                  cfg.paths.data_dir, variant=cfg.render.variant,
                                  progress=cfg.render.progress)
     datamodule = hydra.utils.instantiate(cfg.data, dataset_dir=str(dataset_dir))
+    resolve_ea_checkpoint(cfg)
     model = hydra.utils.instantiate(cfg.model, _convert_="all")
     callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
     loggers = [hydra.utils.instantiate(lg) for lg in cfg.logger.values()]

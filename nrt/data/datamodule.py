@@ -15,6 +15,8 @@ from torch.utils.data import DataLoader, IterableDataset
 
 from nrt.cameras import camera_rays
 from nrt.data.dataset import SceneDataset, load_dataset
+from nrt.errors import DatasetError
+from nrt.physics.envmap import EnvironmentMap
 
 
 def environment_radiance(data: SceneDataset, env_index: torch.Tensor, dirs: torch.Tensor
@@ -76,12 +78,14 @@ class HeldOutImages(IterableDataset):
 
 
 class RayDataModule(L.LightningDataModule):
-    """Training rays from ``transforms_train.json``, validation on ``transforms_test.json``."""
+    """Training rays from ``transforms_train.json``, validation on ``transforms_test.json``,
+    optionally only the frames lit by ``environments`` (names or positions)."""
 
     def __init__(self, dataset_dir: str, batch_size: int = 4096, steps_per_epoch: int = 500,
-                 val_views: int | None = None, seed: int = 0):
+                 val_views: int | None = None, seed: int = 0,
+                 environments: list[str | int] | None = None):
         super().__init__()
-        self.dataset_dir = dataset_dir
+        self.dataset_dir, self.environments = dataset_dir, environments
         self.batch_size, self.steps_per_epoch = batch_size, steps_per_epoch
         self.val_views, self.seed = val_views, seed
         self.train_data: SceneDataset | None = None
@@ -91,6 +95,21 @@ class RayDataModule(L.LightningDataModule):
         if self.train_data is None:
             self.train_data = load_dataset(self.dataset_dir, "train")
             self.val_data = load_dataset(self.dataset_dir, "test")
+            if self.environments is not None:
+                self.train_data = self.train_data.select_environments(list(self.environments))
+                self.val_data = self.val_data.select_environments(list(self.environments))
+
+    @property
+    def environment(self) -> EnvironmentMap:
+        """The one environment lighting the selected frames (stage 2 learns one light field)."""
+        self.setup()
+        used = self.train_data.env_index.unique().tolist()
+        if len(used) != 1:
+            names = [self.train_data.env_names[i] for i in used]
+            raise DatasetError(f"Dataset '{self.dataset_dir}': this stage learns the light field "
+                               f"of one environment, but the training frames use {names}; "
+                               "choose one with data.environments=[<name or position>].")
+        return self.train_data.envmaps[used[0]]
 
     @property
     def bbox(self) -> torch.Tensor:

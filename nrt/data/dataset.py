@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +50,24 @@ class SceneDataset:
 
     def __len__(self) -> int:
         return self.images.shape[0]
+
+    def select_environments(self, wanted: list[str | int]) -> SceneDataset:
+        """The frames lit by the environments ``wanted`` (names, or positions in
+        ``env_names``); environment indices keep their meaning."""
+        keep = []
+        for item in wanted:
+            if isinstance(item, int) and 0 <= item < len(self.env_names):
+                keep.append(item)
+            elif str(item) in self.env_names:
+                keep.append(self.env_names.index(str(item)))
+            else:
+                raise DatasetError(
+                    f"Dataset '{self.root}': data.environments names '{item}', but the dataset "
+                    f"has environments {self.env_names} (give names or positions 0.."
+                    f"{len(self.env_names) - 1}, or null for all).")
+        mask = torch.isin(self.env_index, torch.tensor(keep))
+        return replace(self, images=self.images[mask], c2w=self.c2w[mask],
+                       env_index=self.env_index[mask])
 
     def rays(self, i: int, offsets: torch.Tensor | None = None):
         """Origins, unit view directions and pixel radiance of image ``i``, (H, W, 3) each."""

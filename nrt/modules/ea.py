@@ -17,6 +17,7 @@ import torch
 
 from nrt.metrics import density_agreement, psnr
 from nrt.modules.ea_field import EAField
+from nrt.modules.tensorboard import log_image
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.tonemap import log_tonemap, luminance
 from nrt.physics.volume import cell_centres, ray_box_intersect
@@ -94,7 +95,7 @@ class EAModule(L.LightningModule):
             self._baseline_psnr[view] = float(psnr(batch["background"], ref))
         self.log("val/psnr_background_only", self._baseline_psnr[view], batch_size=1)
         if batch_idx == 0:
-            self._log_image("val/render_vs_truth",
+            log_image(self, "val/render_vs_truth",
                             torch.cat((pred.reshape(h, w, 3), ref.reshape(h, w, 3)), 1))
 
     @torch.no_grad()
@@ -118,17 +119,8 @@ class EAModule(L.LightningModule):
         mid = sigma_t.shape[0] // 2
         scale = sigma_t.max().clamp_min(1e-8)
         panel = torch.cat((learned[mid], sigma_t[mid]), 1) / scale
-        self._log_image("val/density_slice_vs_truth", panel.clamp(0, 1).unsqueeze(-1).expand(
+        log_image(self, "val/density_slice_vs_truth", panel.clamp(0, 1).unsqueeze(-1).expand(
             -1, -1, 3))
-
-    def _log_image(self, tag: str, img: torch.Tensor) -> None:
-        """Log an (H, W, 3) image to every TensorBoard logger (log tonemap, max -> 1)."""
-        y = log_tonemap(img.detach().float().cpu())
-        y = (y / y.max().clamp_min(1e-8)).clamp(0, 1)
-        for logger in self.loggers:
-            writer = getattr(logger, "experiment", None)
-            if hasattr(writer, "add_image"):
-                writer.add_image(tag, y.numpy(), self.global_step, dataformats="HWC")
 
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """Write ``density_grid.npz`` (``density`` [z, y, x] per unit length, ``bbox``) at

@@ -30,16 +30,24 @@ def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int, jitter
 
 def alpha_composite(sigma: torch.Tensor, deltas: torch.Tensor, values: torch.Tensor,
                     background: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Composite per-sample ``values`` (R, S, C) with extinction ``sigma`` (R, S) over
-    segment lengths ``deltas`` (R, S) in front of ``background`` (R, C).
+    """Composite per-sample ``values`` (R, S, C) over segment lengths ``deltas`` (R, S) in
+    front of ``background`` (R, C), with extinction ``sigma`` (R, S) shared by the channels
+    or (R, S, C) per channel (chromatic media; C may be 1 and broadcast).
 
-    Returns the pixel values (R, C) and the transmittance left after the last sample (R,).
+    Returns the pixel values (R, C) and the transmittance left after the last sample,
+    (R,) or (R, C) like ``sigma``.
     """
-    tau = sigma.clamp_min(0.0) * deltas
+    per_channel = sigma.dim() == values.dim()
+    axis = -2 if per_channel else -1
+    tau = sigma.clamp_min(0.0) * (deltas.unsqueeze(-1) if per_channel else deltas)
     alpha = -torch.expm1(-tau)
-    cum = torch.cumsum(tau, -1)
+    cum = torch.cumsum(tau, axis)
     t_before = torch.exp(-(cum - tau))  # exclusive prefix sum: transmittance up to sample i
     weights = t_before * alpha
-    t_final = torch.exp(-cum[..., -1])
-    color = (weights.unsqueeze(-1) * values).sum(-2) + t_final.unsqueeze(-1) * background
+    t_final = torch.exp(-cum.select(axis, -1))
+    if not per_channel:
+        weights, t_final_c = weights.unsqueeze(-1), t_final.unsqueeze(-1)
+    else:
+        t_final_c = t_final
+    color = (weights * values).sum(-2) + t_final_c * background
     return color, t_final

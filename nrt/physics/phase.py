@@ -78,3 +78,20 @@ def sample_hg(w: torch.Tensor, g: torch.Tensor, xi: torch.Tensor) -> torch.Tenso
         + (sin * torch.sin(phi)).unsqueeze(-1) * s
         + cos.unsqueeze(-1) * w
     )
+
+
+def sample_uniform_sphere(xi: torch.Tensor) -> torch.Tensor:
+    """Unit directions (..., 3) uniform on the sphere from uniform ``xi`` (..., 2)."""
+    cos = 1 - 2 * xi[..., 0]
+    sin = torch.sqrt((1 - cos * cos).clamp_min(0.0))
+    phi = 2 * math.pi * xi[..., 1]
+    return torch.stack((sin * torch.cos(phi), sin * torch.sin(phi), cos), -1)
+
+
+def sample_phase(w: torch.Tensor, g: torch.Tensor | None, xi: torch.Tensor) -> torch.Tensor:
+    """Directions (..., 3) drawn from the phase function around travel directions ``w``:
+    uniform on the sphere when ``g`` is None (isotropic), HG(g) otherwise. Either way the
+    sample's weight ``f / pdf`` is exactly 1, so ``S = mean_k L(x, w'_k)``."""
+    if g is None:
+        return sample_uniform_sphere(xi)
+    return sample_hg(w, g, xi)

@@ -1,0 +1,79 @@
+"""Volume rendering equation along primary rays, in alpha-compositing form.
+
+``I = sum_i T_i (1 - exp(-sigma_t,i d_i)) albedo_i S_i + T_N E(v)`` between the ray's entry
+and exit of the box, stratified jittered samples, per-channel extinction; ``S_i`` is the
+in-scattered radiance toward the camera (travel direction ``-v``) estimated from the light
+field, plus the first scattering of known lights (emitters, sun) when the scene has them. The
+transmitted background ``T_N E(v)`` is part of the sum (DESIGN.md section 2).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from nrt.losses.rte import DirectSource
+from nrt.losses.unbiased import unbiased_square
+from nrt.modules.light_field import LightField
+from nrt.modules.medium import Medium
+from nrt.physics.compositing import alpha_composite, stratified_samples
+from nrt.physics.inscatter import inscattered_radiance
+from nrt.physics.volume import ray_box_intersect
+
+
+def vre_render(light: LightField, medium: Medium, origins: torch.Tensor, dirs: torch.Tensor,
+               background: torch.Tensor, n_samples: int, n_dirs: int, jitter: bool = True,
+               detach_inscatter: bool = False, direct_source: DirectSource | None = None,
+               estimates: int = 1) -> list[torch.Tensor]:
+    """Pixels ``I`` (R, 3) of view rays (``origins``, unit ``dirs`` v, ``background``
+    E(v)), one per independent in-scattering estimate; the first of several carries no
+    graph (the value of :func:`~nrt.losses.unbiased.unbiased_square`)."""
+    t0, t1, hit = ray_box_intersect(origins, dirs, medium.bbox)
+    outs = [background.clone() for _ in range(estimates)]
+    if not hit.any():
+        return outs
+    o, v = origins[hit], dirs[hit]
+    t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
+    x = o.unsqueeze(1) + t.unsqueeze(-1) * v.unsqueeze(1)
+    w = (-v).unsqueeze(1).expand_as(x)
+    props = medium(x)
+    s_direct = direct_source(x, w, props) if direct_source is not None else 0.0
+    for k in range(estimates):
+        value_only = estimates > 1 and k == 0
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not value_only):
+            g = props.g.detach() if value_only and props.g is not None else props.g
+            s_mc = inscattered_radiance(light, x, w, g, n_dirs,
+                                        detach=detach_inscatter or value_only)
+            color, _ = alpha_composite(props.sigma_t, delta, props.albedo * (s_mc + s_direct),
+                                       background[hit])
+            outs[k][hit] = color.to(outs[k].dtype)
+    return outs
+
+
+def vre_loss(light: LightField, medium: Medium, origins: torch.Tensor, dirs: torch.Tensor,
+             pixels: torch.Tensor, background: torch.Tensor, n_samples: int, n_dirs: int,
+             detach_inscatter: bool = False, direct_source: DirectSource | None = None
+             ) -> torch.Tensor:
+    """Unbiased mean squared error (units of radiance_scale) of the rendered against the
+    photographed ``pixels`` over the rays that cross the box (0 when none does)."""
+    _, _, hit = ray_box_intersect(origins, dirs, medium.bbox)
+    if not hit.any():
+        return origins.new_zeros(())
+    i_a, i_b = vre_render(light, medium, origins[hit], dirs[hit], background[hit], n_samples,
+                          n_dirs, True, detach_inscatter, direct_source, estimates=2)
+    return unbiased_square((i_a - pixels[hit]) / light.radiance_scale,
+                           (i_b - pixels[hit]) / light.radiance_scale)
+
+
+def transmitted_background(medium: Medium, origins: torch.Tensor, dirs: torch.Tensor,
+                           background: torch.Tensor, n_samples: int) -> torch.Tensor:
+    """The no-scattering prediction ``T E(v)`` (R, 3): the background seen through the
+    medium's extinction, with nothing scattered into the ray."""
+    t0, t1, hit = ray_box_intersect(origins, dirs, medium.bbox)
+    out = background.clone()
+    if hit.any():
+        t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter=False)
+        x = origins[hit].unsqueeze(1) + t.unsqueeze(-1) * dirs[hit].unsqueeze(1)
+        sigma_t = medium(x).sigma_t
+        _, t_final = alpha_composite(sigma_t, delta, torch.zeros_like(sigma_t), background[hit])
+        out[hit] = t_final * background[hit]
+    return out

@@ -1,0 +1,363 @@
+"""Stage 2: joint neural radiative transfer (``nrt-train stage=rte``; ``stage=forward``).
+
+Trains the light field ``L_theta`` and the medium ``M_phi`` (modulating the stage-1 EA
+density) on ``L = w_rte L_RTE + w_bc L_BC + w_obs L_obs + w_vre L_VRE``. Only objectives
+with a non-zero weight are built, and only the terms the scene's effects declare (no g
+without HG, grey coefficients without chromatic extinction, explicit first scattering
+only of the emitters and sun the scene has). Each objective is backpropagated on its own,
+so the time per step splits by objective (``time/step_<name>_s``); gradients accumulate
+and one Adam step follows.
+
+Forward mode (``stage=forward``): the medium is the dataset's ground truth and only the
+light field learns (RTE + BC), which validates the solver against Mitsuba's renders.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+
+from nrt.data.samplers import (
+    DensityPointSampler,
+    EnvironmentDirectionSampler,
+    boundary_samples,
+    collocation_points,
+)
+from nrt.errors import NrtError
+from nrt.losses.boundary import boundary_loss
+from nrt.losses.observation import exit_radiance, observation_loss
+from nrt.losses.rte import DirectSource, rte_loss
+from nrt.losses.vre import transmitted_background, vre_loss, vre_render
+from nrt.metrics import property_mse, psnr
+from nrt.modules.ea import load_ea_field
+from nrt.modules.light_field import LightField
+from nrt.modules.medium import GroundTruthMedium, Medium, NeuralMedium
+from nrt.modules.tensorboard import log_image
+from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
+from nrt.physics.envmap import EnvironmentMap, texel_directions
+from nrt.physics.tonemap import luminance
+
+log = logging.getLogger(__name__)
+
+OBJECTIVES = ("rte", "bc", "obs", "vre")
+DENSITY_SOURCES = ("ea", "none", "ground_truth")
+
+
+def scheduled(value: float | list, step: int) -> float:
+    """A constant, or ``[start, end, ramp_steps]``: linear from start to end over the first
+    ``ramp_steps`` steps, then constant (threestudio's ``lambda_*`` ramps)."""
+    if isinstance(value, list | tuple):
+        start, end, steps = value
+        return float(start + (end - start) * min(step / max(steps, 1), 1.0))
+    return float(value)
+
+
+def mean_radiance(envmap: EnvironmentMap) -> float:
+    """Mean luminance of an environment over the sphere (rows weighted by solid angle)."""
+    d = texel_directions(envmap.height, envmap.width)
+    solid = torch.sqrt((1 - d[..., 1] ** 2).clamp_min(0.0))
+    lum = luminance(envmap.radiance.double())
+    return float((lum * solid).sum() / solid.sum().clamp_min(1e-30))
+
+
+class RTEModule(L.LightningModule):
+    """Light field + medium trained on the RTE, boundary, observation and VRE objectives."""
+
+    def __init__(self, effects: dict, light_field: dict, medium: dict, density: dict,
+                 weights: dict, samples: dict, lr: dict, detach_inscatter: bool = False,
+                 lr_final_factor: float = 0.1, medium_warmup: float = 0.0,
+                 sun: dict | None = None, grad_clip: float | None = None,
+                 eval_chunk: int = 4096,
+                 property_resolution: int | None = None):
+        super().__init__()
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        if int(effects.get("max_scattering_order", -1)) != -1:
+            raise NrtError(
+                f"scene.effects.max_scattering_order={effects['max_scattering_order']}: the RTE "
+                "stage solves for the full radiance (all scattering orders) and cannot match "
+                "photos rendered with truncated transport. Render the scene with -1 to train "
+                "stage 2 on it.")
+        unknown = set(weights) - set(OBJECTIVES)
+        if unknown:
+            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
+                           f"objectives are {list(OBJECTIVES)}.")
+        if density["source"] not in DENSITY_SOURCES:
+            raise NrtError(f"init.source must be one of {list(DENSITY_SOURCES)}, got "
+                           f"'{density['source']}'.")
+        self.effects = effects
+        self.light = LightField(**light_field)
+        self.medium: Medium | None = None
+        if density["source"] != "ground_truth":
+            self.medium = self._neural_medium(effects, medium, density)
+        self.envmap: EnvironmentMap | None = None  # the training environment E
+        self.env_rest: EnvironmentMap | None = None  # E without its sun: the inflow of L
+        self.env_sun: EnvironmentMap | None = None  # the sun's part E - E_rest
+        self.lights: DirectLights | None = None
+        self._env_sampler: EnvironmentDirectionSampler | None = None
+        self._density_sampler: DensityPointSampler | None = None
+        self._baselines: dict[int, dict[str, float]] = {}
+
+    @staticmethod
+    def _neural_medium(effects: dict, medium: dict, density: dict) -> NeuralMedium:
+        ea = None
+        if density["source"] == "ea":
+            ckpt = density.get("ea_ckpt")
+            if not ckpt or not Path(ckpt).is_file():
+                raise NrtError(f"init.ea_ckpt='{ckpt}' is not a checkpoint file. Train stage 1 "
+                               "first (nrt-train stage=ea scene=<same scene>), pass "
+                               "init.ea_ckpt=<path/to/last.ckpt>, or use init=none for the "
+                               "single-stage ablation.")
+            ea = load_ea_field(ckpt)
+            ea.requires_grad_(bool(density.get("train", False)))
+            log.info("Stage 2 modulates the EA density of %s (%s)", ckpt,
+                     "fine-tuned" if density.get("train") else "frozen")
+        return NeuralMedium(effects, ea, **medium)
+
+    # ----------------------------------------------------------------- set-up
+    def setup(self, stage: str) -> None:
+        dm = self.trainer.datamodule if self._trainer is not None else None
+        if dm is None:
+            return
+        bbox = dm.bbox.to(self.device)
+        if self.medium is None:
+            gt = dm.ground_truth
+            if gt is None:
+                raise NrtError(f"Dataset '{dm.dataset_dir}' has no ground_truth.npz; forward "
+                               "mode (init.source=ground_truth) needs the true medium.")
+            self.medium = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
+                                            bbox).to(self.device)
+        self.medium.bbox.copy_(bbox)
+        self.light.bbox.copy_(bbox)
+        env = dm.environment
+        scale = max(mean_radiance(env), 1e-6)
+        self.light.radiance_scale.fill_(scale)
+        self._set_lights(env, scale)
+
+    def configure_optimizers(self):
+        lr = self.hparams.lr
+        groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
+        if isinstance(self.medium, NeuralMedium):
+            density = self.medium.density_field
+            dens_ids = {id(p) for p in density.parameters()} if density is not None else set()
+            modulation = [p for p in self.medium.parameters() if id(p) not in dens_ids]
+            groups.append({"params": modulation, "lr": lr["medium"]})
+            if density is not None and self.hparams.density.get("train", False):
+                groups.append({"params": list(density.parameters()), "lr": lr["density"]})
+        opt = torch.optim.Adam(groups)
+        steps = max(int(self.trainer.max_steps), 1) if self._trainer is not None else 1
+        factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup * steps
+
+        def decay(s: int) -> float:
+            return factor ** min(s / steps, 1.0)
+
+        def medium(s: int) -> float:  # the medium waits until the light field is plausible
+            return decay(s) if s >= warmup else 0.0
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [medium] * (len(groups) - 1))
+        return [opt], [{"scheduler": sched, "interval": "step"}]
+
+    def _set_lights(self, env: EnvironmentMap, scale: float) -> None:
+        """Known lights: the scene's point emitters and, when ``sun.threshold`` is set, the
+        environment's texels brighter than ``threshold x radiance_scale`` as suns."""
+        sun = self.hparams.sun or {}
+        if sun.get("threshold") is not None:
+            rest, sun_dirs, sun_irr = split_sun(env, float(sun["threshold"]) * scale,
+                                                int(sun.get("max_suns", 4)))
+        else:
+            rest, sun_dirs, sun_irr = env, torch.zeros(0, 3), torch.zeros(0, 3)
+        emitters = self.effects.get("emitters") or []
+        self.lights = DirectLights(
+            torch.tensor([e["position"] for e in emitters], dtype=torch.float32).reshape(-1, 3),
+            torch.tensor([e["intensity"] for e in emitters], dtype=torch.float32).reshape(-1, 3),
+            sun_dirs, sun_irr).to(self.device)
+        if sun_dirs.shape[0]:
+            log.info("Sun(s) of the environment scattered explicitly: directions %s, "
+                     "irradiance %s", sun_dirs.tolist(), sun_irr.tolist())
+        self.envmap = env.to(self.device)
+        self.env_rest = rest.to(self.device)
+        self.env_sun = EnvironmentMap(env.radiance - rest.radiance).to(self.device) \
+            if sun_dirs.shape[0] else None
+        self._env_sampler = EnvironmentDirectionSampler(rest)
+
+    def direct_source(self) -> DirectSource | None:
+        """First scattering of the known lights (emitters, suns), or None without any."""
+        if self.lights is None or len(self.lights) == 0:
+            return None
+        n_steps = int(self.hparams.samples.get("shadow_steps", 16))
+
+        def source(x, w, props):
+            return direct_inscatter(x, w, props.g, self.lights,
+                                    lambda p: self.medium(p).sigma_t, self.medium.bbox, n_steps)
+        return source
+
+    def _sunless(self, dirs: torch.Tensor) -> torch.Tensor:
+        """Mask of view directions that do not look into the sun's texels (all without one)."""
+        if self.env_sun is None:
+            return torch.ones(dirs.shape[0], dtype=torch.bool, device=dirs.device)
+        return self.env_sun.lookup(dirs).sum(-1) <= 0
+
+    def density_sampler(self) -> DensityPointSampler:
+        """Collocation sampler following the current extinction (rebuilt each validation)."""
+        if self._density_sampler is None:
+            grids = self.medium.grids(int(self.hparams.samples.get("density_grid", 32)))
+            sigma_t = luminance(grids["sigma_a"] + grids["sigma_s"])
+            self._density_sampler = DensityPointSampler(sigma_t, self.medium.bbox)
+        return self._density_sampler
+
+    # --------------------------------------------------------------- training
+    def objective(self, name: str, batch: dict) -> torch.Tensor:
+        """The unweighted loss of objective ``name`` on fresh samples and ``batch``."""
+        s, bbox, source = self.hparams.samples, self.light.bbox, self.direct_source()
+        if name == "rte":
+            pts = collocation_points(int(s["collocation_points"]), bbox, self.density_sampler(),
+                                     float(s["density_fraction"]))
+            return rte_loss(self.light, self.medium, pts, int(s["inscatter_directions"]),
+                            self.hparams.detach_inscatter, source)
+        if name == "bc":
+            pts, w = boundary_samples(int(s["boundary_points"]), bbox, self._env_sampler,
+                                      float(s["env_fraction"]))
+            return boundary_loss(self.light, pts, w, self.env_rest.lookup(-w).to(pts.dtype))
+        if name == "obs":  # rays into the sun see it through the medium: left to the VRE
+            keep = self._sunless(batch["dirs"])
+            return observation_loss(self.light, batch["origins"][keep], batch["dirs"][keep],
+                                    batch["rgb"][keep])
+        n = int(s["vre_rays"])
+        return vre_loss(self.light, self.medium, batch["origins"][:n], batch["dirs"][:n],
+                        batch["rgb"][:n], batch["background"][:n], int(s["vre_samples"]),
+                        int(s["vre_directions"]), self.hparams.detach_inscatter, source)
+
+    def active_weights(self) -> dict[str, float]:
+        step = self.global_step
+        return {k: w for k, v in self.hparams.weights.items() if (w := scheduled(v, step)) > 0}
+
+    def training_step(self, batch: dict, batch_idx: int) -> None:
+        opt = self.optimizers()
+        opt.zero_grad(set_to_none=True)
+        total = 0.0
+        for name, weight in self.active_weights().items():
+            start = time.perf_counter()
+            loss = self.objective(name, batch)
+            self.manual_backward(weight * loss)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+            self.log(f"time/step_{name}_s", time.perf_counter() - start)
+            self.log(f"train/loss_{name}", loss.detach())
+            total = total + weight * loss.detach()
+        self.log("train/loss", total, prog_bar=True)
+        if self.hparams.grad_clip:
+            self.clip_gradients(opt, gradient_clip_val=self.hparams.grad_clip)
+        opt.step()
+        self.lr_schedulers().step()
+
+    # ------------------------------------------------------------- validation
+    def predict_pixels(self, origins: torch.Tensor, dirs: torch.Tensor,
+                       background: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Two predictions of ``L(o, -v)`` (R, 3) for view rays, chunked, without graph:
+        ``vre`` (the VRE through the box with the light field's in-scattering: the image
+        the method renders) and ``exit`` (the light field where the ray leaves the box,
+        plus the sun seen through the medium)."""
+        s, chunk, source = self.hparams.samples, self.hparams.eval_chunk, self.direct_source()
+        out: dict[str, list] = {"vre": [], "exit": []}
+        for i in range(0, len(origins), chunk):
+            o, d, bg = origins[i:i + chunk], dirs[i:i + chunk], background[i:i + chunk]
+            out["vre"].append(vre_render(self.light, self.medium, o, d, bg,
+                                         int(s["vre_samples"]), int(s["vre_directions"]),
+                                         jitter=False, direct_source=source)[0].detach())
+            with torch.no_grad():
+                sun = self.env_sun.lookup(d) if self.env_sun is not None else torch.zeros_like(bg)
+                exit_ = exit_radiance(self.light, o, d, bg - sun)
+                if self.env_sun is not None:
+                    exit_ = exit_ + transmitted_background(self.medium, o, d, sun,
+                                                           int(s["vre_samples"]))
+            out["exit"].append(exit_)
+        return {k: torch.cat(v) for k, v in out.items()}
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        h, w = batch["shape"]
+        ref = batch["rgb"]
+        pred = self.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
+        self.log("val/psnr", psnr(pred["vre"], ref), batch_size=1)
+        self.log("val/psnr_exit", psnr(pred["exit"], ref), batch_size=1)
+        scale = self.light.radiance_scale
+        self.log("val/image_mse", torch.mean(((pred["vre"] - ref) / scale) ** 2), batch_size=1)
+        for key, value in self._view_baselines(batch).items():
+            self.log(f"val/{key}", value, batch_size=1)
+        if batch_idx == 0:
+            log_image(self, "val/vre|exit|truth", torch.cat(
+                [p.reshape(h, w, 3) for p in (pred["vre"], pred["exit"], ref)], 1))
+
+    def _view_baselines(self, batch: dict) -> dict[str, float]:
+        """PSNR of medium-free (background only) and no-scattering predictions (the true
+        medium's transmitted background ``T E(v)``, when ground truth exists); cached."""
+        view = int(batch["view"])
+        if view not in self._baselines:
+            ref, bg = batch["rgb"], batch["background"]
+            out = {"psnr_background_only": float(psnr(bg, ref))}
+            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
+            if gt is not None:
+                true = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
+                                         self.medium.bbox.cpu()).to(self.device)
+                with torch.no_grad():
+                    t_e = transmitted_background(true, batch["origins"], batch["dirs"], bg,
+                                                 int(self.hparams.samples["vre_samples"]))
+                out["psnr_transmitted_only"] = float(psnr(t_e, ref))
+            self._baselines[view] = out
+        return self._baselines[view]
+
+    def property_grids(self, resolution: int) -> dict[str, torch.Tensor]:
+        return self.medium.grids(resolution)
+
+    def on_train_start(self) -> None:
+        if self.global_step == 0:  # the starting point of accuracy-versus-time curves
+            for key, value in self._properties().items():
+                for logger in self.loggers:
+                    logger.log_metrics({key: float(value), "time/wall_s": 0.0}, step=0)
+
+    def on_validation_epoch_end(self) -> None:
+        self._density_sampler = None  # follow the medium as it learns
+        for key, value in self._properties(slices=True).items():
+            self.log(key, value)
+
+    def _properties(self, slices: bool = False) -> dict[str, torch.Tensor]:
+        """Property MSEs against ground truth (when there is one and the medium learns)."""
+        gt = self.trainer.datamodule.ground_truth if self.trainer.datamodule else None
+        if gt is None or not isinstance(self.medium, NeuralMedium):
+            return {}
+        learned = self.property_grids(gt["sigma_a"].shape[0])
+        truth = {k: v.to(self.device) for k, v in gt.items()}
+        with_g = self.medium.phase != "none"
+        if slices:
+            self._log_property_slices(learned, truth, with_g)
+        return {f"val/mse_{k}_x100": v for k, v in property_mse(learned, truth, with_g).items()}
+
+    def _log_property_slices(self, learned: dict, truth: dict, with_g: bool) -> None:
+        mid = truth["sigma_a"].shape[0] // 2
+        for key in ("sigma_a", "sigma_s"):
+            panel = torch.cat((learned[key][mid], truth[key][mid]), 1)
+            log_image(self, f"val/{key}_slice_vs_truth", panel, tonemap=False)
+        if with_g:
+            g = torch.cat((learned["g"][mid], truth["g"][mid]), 1)
+            log_image(self, "val/g_slice_vs_truth",
+                      ((g + 1) / 2).unsqueeze(-1).expand(-1, -1, 3), tonemap=False)
+
+    # ------------------------------------------------------------------ export
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """Write ``medium_grids.npz`` in the ground truth's layout (``sigma_a``, ``sigma_s``
+        (R, R, R, 3), ``g`` (R, R, R), ``bbox``) at ``property_resolution`` (default: the
+        ground truth's, else 64)."""
+        if not isinstance(self.medium, NeuralMedium):
+            return {}
+        res = self.hparams.property_resolution
+        if res is None:
+            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
+            res = gt["sigma_a"].shape[0] if gt is not None else 64
+        grids = self.property_grids(res)
+        path = Path(run_dir) / "medium_grids.npz"
+        np.savez_compressed(path, bbox=self.medium.bbox.cpu().numpy(),
+                            **{k: v.cpu().numpy().astype(np.float32) for k, v in grids.items()})
+        return {"medium_grids": str(path)}
