@@ -10,6 +10,9 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import copy
+import csv
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -61,3 +64,50 @@ def tiny_dataset(tiny_output_dir) -> Path:
     folder = ensure_dataset(scene, cfg.paths.data_dir, progress=False)
     assert (folder / "scene.json").is_file(), folder
     return folder
+
+
+NRT_TRAIN = [sys.executable, "-m", "nrt.cli.train"]
+
+
+def train_command(out: Path, data_root: Path, *overrides: str, stage: str = "ea"
+                  ) -> tuple[list[str], dict]:
+    """``nrt-train stage=<stage> preset=tiny`` writing runs under ``out`` and reading the
+    session's cached tiny dataset from ``data_root`` (no re-render)."""
+    env = {**os.environ, "NRT_OUTPUT_DIR": str(out)}
+    return [*NRT_TRAIN, f"stage={stage}", "preset=tiny", "logger=[tensorboard,csv]",
+            f"paths.data_dir={data_root}", "render.progress=false",
+            "trainer.enable_progress_bar=false", *overrides], env
+
+
+def run_train(out: Path, data_root: Path, *overrides: str, stage: str = "ea"
+              ) -> subprocess.CompletedProcess:
+    cmd, env = train_command(out, data_root, *overrides, stage=stage)
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def read_csv_metrics(run_dir: Path) -> list[dict]:
+    with open(run_dir / "csv" / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def values(rows: list[dict], key: str) -> list[float]:
+    return [float(r[key]) for r in rows if r.get(key)]
+
+
+def last_value(rows: list[dict], key: str) -> float:
+    return values(rows, key)[-1]
+
+
+def only_run_dir(out: Path, stage: str) -> Path:
+    runs = sorted((out / "default" / stage).iterdir())
+    assert len(runs) == 1, runs
+    return runs[0]
+
+
+@pytest.fixture(scope="session")
+def tiny_ea_run(tmp_path_factory, tiny_dataset) -> tuple[Path, subprocess.CompletedProcess]:
+    """``nrt-train stage=ea preset=tiny`` run once per session via the real CLI: the
+    output folder (holding ``default/ea/<run>``) and the finished process. Stage-2 tests
+    start from this run's checkpoint."""
+    out = tmp_path_factory.mktemp("tiny_runs")
+    return out, run_train(out, tiny_dataset.parent)

@@ -1,61 +1,33 @@
 """Stage 1 (EA) end to end: the real CLI on the tiny preset, kill + resume, and hard
 cases (dense and near-empty media) that must never put NaN or Inf in the parameters."""
 
-import csv
-import os
 import signal
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import lightning as L
 import numpy as np
 import pytest
 import torch
-from conftest import compose_config
+from conftest import (
+    compose_config,
+    last_value,
+    only_run_dir,
+    read_csv_metrics,
+    run_train,
+    train_command,
+)
 from omegaconf import OmegaConf
 
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
 from nrt.modules.ea import EAModule
 
-NRT_TRAIN = [sys.executable, "-m", "nrt.cli.train"]
 
-
-def read_csv_metrics(run_dir: Path) -> list[dict]:
-    with open(run_dir / "csv" / "metrics.csv") as f:
-        return list(csv.DictReader(f))
-
-
-def last_value(rows: list[dict], key: str) -> float:
-    return [float(r[key]) for r in rows if r.get(key)][-1]
-
-
-def train_command(out: Path, data_root: Path, *overrides: str) -> tuple[list[str], dict]:
-    """``nrt-train stage=ea preset=tiny`` writing runs under ``out`` and reading the
-    session's cached tiny dataset from ``data_root`` (no re-render)."""
-    env = {**os.environ, "NRT_OUTPUT_DIR": str(out)}
-    return [*NRT_TRAIN, "stage=ea", "preset=tiny", "logger=[tensorboard,csv]",
-            f"paths.data_dir={data_root}", "render.progress=false",
-            "trainer.enable_progress_bar=false", *overrides], env
-
-
-def run_train(out: Path, data_root: Path, *overrides: str) -> subprocess.CompletedProcess:
-    cmd, env = train_command(out, data_root, *overrides)
-    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
-
-
-def only_run_dir(out: Path) -> Path:
-    runs = sorted((out / "default" / "ea").iterdir())
-    assert len(runs) == 1, runs
-    return runs[0]
-
-
-def test_tiny_ea_trains_via_cli_and_beats_background(tmp_path, tiny_dataset):
-    proc = run_train(tmp_path, tiny_dataset.parent)
+def test_tiny_ea_trains_via_cli_and_beats_background(tiny_ea_run):
+    out, proc = tiny_ea_run
     assert proc.returncode == 0, proc.stderr[-3000:]
-    run = only_run_dir(tmp_path)
+    run = only_run_dir(out, "ea")
     rows = read_csv_metrics(run)
     psnr, baseline = last_value(rows, "val/psnr"), last_value(rows, "val/psnr_background_only")
     # The background alone explains the sky around the cloud; a learned medium must add
@@ -85,14 +57,14 @@ def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
     finally:
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-    run = only_run_dir(tmp_path)
+    run = only_run_dir(tmp_path, "ea")
     saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
     step, clock = saved["global_step"], saved["callbacks"]["WallClock"]["elapsed"]
     assert step >= 10
     done = run_train(tmp_path, tiny_dataset.parent, "resume=true", f"budget.ea.steps={step + 20}",
                      "budget.checkpoint_every=10", "budget.val_every=1000", "logger=csv")
     assert done.returncode == 0, done.stderr[-3000:]
-    assert only_run_dir(tmp_path) == run  # continued in place, no new run folder
+    assert only_run_dir(tmp_path, "ea") == run  # continued in place, no new run folder
     resumed = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False,
                          map_location="cpu")
     assert resumed["global_step"] == step + 20

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import hydra
+from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli import run_dirs
@@ -82,7 +83,12 @@ def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def _main(cfg: DictConfig):
         try:
-            return task(cfg)
+            try:
+                return task(cfg)
+            except InstantiationException as exc:  # a component's own NrtError, unwrapped
+                if isinstance(exc.__cause__, NrtError):
+                    raise exc.__cause__ from None
+                raise
         except NrtError as exc:
             _log_to_files(str(exc))
             print(f"\nnrt: error: {exc}", file=sys.stderr)

@@ -235,7 +235,7 @@ class RTEModule(L.LightningModule):
         step = self.global_step
         return {k: w for k, v in self.hparams.weights.items() if (w := scheduled(v, step)) > 0}
 
-    def training_step(self, batch: dict, batch_idx: int) -> None:
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
         total = 0.0
@@ -253,6 +253,7 @@ class RTEModule(L.LightningModule):
             self.clip_gradients(opt, gradient_clip_val=self.hparams.grad_clip)
         opt.step()
         self.lr_schedulers().step()
+        return torch.as_tensor(total)
 
     # ------------------------------------------------------------- validation
     def predict_pixels(self, origins: torch.Tensor, dirs: torch.Tensor,
