@@ -12,13 +12,18 @@ log = logging.getLogger(__name__)
 
 
 class WallClock(L.Callback):
-    """Logs ``time/wall_s``, training seconds since the run started, next to the metrics.
+    """Logs ``time/wall_s``, training seconds since the run started, next to the metrics;
+    with ``budget_s``, stops training once that many seconds are spent (equal-time runs).
 
-    The elapsed time is stored in checkpoints, so a resumed run continues its clock and
-    accuracy-versus-time curves stay continuous across a kill and resume.
+    Validation is not counted (the clock pauses while it runs), so accuracy-versus-time
+    curves and budgets measure optimisation alone, whatever the validation cadence. The
+    elapsed time is stored in checkpoints: a resumed run continues its clock and budget.
     """
 
-    def __init__(self):
+    def __init__(self, budget_s: float | None = None):
+        if budget_s is not None and budget_s <= 0:
+            raise ValueError(f"budget_s must be a positive number of seconds, got {budget_s}")
+        self.budget_s = budget_s
         self.elapsed_before = 0.0
         self._start: float | None = None
 
@@ -26,14 +31,34 @@ class WallClock(L.Callback):
         running = 0.0 if self._start is None else time.perf_counter() - self._start
         return self.elapsed_before + running
 
+    def _pause(self) -> None:
+        if self._start is not None:
+            self.elapsed_before, self._start = self.seconds(), None
+
+    def _resume(self) -> None:
+        if self._start is None:
+            self._start = time.perf_counter()
+
     def on_train_start(self, trainer, pl_module) -> None:
-        self._start = time.perf_counter()
+        self._resume()
 
     def on_train_end(self, trainer, pl_module) -> None:
-        self.elapsed_before, self._start = self.seconds(), None
+        self._pause()
+
+    def on_validation_start(self, trainer, pl_module) -> None:
+        self._pause()
+
+    def on_validation_end(self, trainer, pl_module) -> None:
+        if not trainer.sanity_checking and trainer.state.fn == "fit":
+            self._resume()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        pl_module.log("time/wall_s", self.seconds())
+        seconds = self.seconds()
+        pl_module.log("time/wall_s", seconds)
+        if self.budget_s is not None and seconds >= self.budget_s and not trainer.should_stop:
+            log.info("Time budget of %.0f s spent at step %d: stopping.", self.budget_s,
+                     trainer.global_step)
+            trainer.should_stop = True
 
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
         if not trainer.sanity_checking:
@@ -72,3 +97,109 @@ class NonFiniteGuard(L.Callback):
             if not torch.isfinite(p).all():
                 raise FloatingPointError(f"parameter '{name}' became non-finite at step "
                                          f"{trainer.global_step}")
+
+
+class HeldOutImageMetrics(L.Callback):
+    """PSNR, SSIM (and optionally LPIPS) of every held-out view a stage renders.
+
+    A stage's ``validation_step`` returns ``{"image": pred, "reference": ref}``, both
+    (H, W, 3) linear radiance; this logs ``val/psnr``, ``val/ssim`` (and ``val/lpips``),
+    averaged over the views, next to ``time/wall_s``.
+    """
+
+    def __init__(self, lpips: bool = False, lpips_net: str = "alex"):
+        self.lpips_enabled, self.lpips_net = lpips, lpips_net
+        self._lpips = None
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        if self.lpips_enabled and self._lpips is None:
+            from nrt.metrics import LPIPS
+
+            self._lpips = LPIPS(self.lpips_net)  # fails early when the weights are missing
+
+    def on_validation_batch_end(self, trainer, pl_module, outputs, batch, batch_idx,
+                                dataloader_idx: int = 0) -> None:
+        if not isinstance(outputs, dict) or "image" not in outputs:
+            return
+        from nrt.metrics import psnr, ssim
+
+        pred, ref = outputs["image"].detach(), outputs["reference"].detach()
+        pl_module.log("val/psnr", psnr(pred, ref), batch_size=1)
+        pl_module.log("val/ssim", ssim(pred, ref), batch_size=1)
+        if self._lpips is not None:
+            pl_module.log("val/lpips", self._lpips(pred.cpu(), ref.cpu()), batch_size=1)
+
+
+class PropertyMetrics(L.Callback):
+    """Medium-property MSE x 10^2 against the dataset's ground truth (DESIGN.md section 3).
+
+    For a stage whose module learns a medium (``property_grids(resolution)`` returns grids
+    in the ground truth's layout, else None) and a dataset with ``ground_truth.npz``:
+    ``val/mse_{sigma_a,sigma_s,sigma_t}_x100`` and, unless the scene is isotropic,
+    ``val/mse_g_x100`` (weighted by the true sigma_s), at step 0 (the starting point of
+    accuracy-versus-time curves), after each validation and when training ends; with
+    ``slices``, the middle z-slices learned | true to TensorBoard.
+    """
+
+    def __init__(self, slices: bool = True):
+        self.slices = slices
+        self._last_measured: int | None = None
+
+    def measure(self, trainer, pl_module) -> dict[str, float]:
+        dm = trainer.datamodule
+        gt = getattr(dm, "ground_truth", None) if dm is not None else None
+        grids_of = getattr(pl_module, "property_grids", None)
+        if gt is None or grids_of is None:
+            return {}
+        learned = grids_of(gt["g"].shape[0])
+        if learned is None:
+            return {}
+        from nrt.metrics import property_mse
+
+        truth = {k: v.to(learned["sigma_a"].device) for k, v in gt.items()}
+        effects = getattr(pl_module, "effects", None) or {}
+        with_g = effects.get("phase", "hg") != "isotropic"
+        if self.slices:
+            self._log_slices(pl_module, learned, truth, with_g)
+        return {f"val/mse_{k}_x100": float(v)
+                for k, v in property_mse(learned, truth, with_g).items()}
+
+    @staticmethod
+    def _log_slices(pl_module, learned: dict, truth: dict, with_g: bool) -> None:
+        from nrt.modules.tensorboard import log_image
+
+        mid = truth["sigma_a"].shape[0] // 2
+        for key in ("sigma_a", "sigma_s"):
+            panel = torch.cat((learned[key][mid], truth[key][mid]), 1)
+            log_image(pl_module, f"val/{key}_slice_vs_truth", panel, tonemap=False)
+        if with_g:
+            g = torch.cat((learned["g"][mid], truth["g"][mid]), 1)
+            log_image(pl_module, "val/g_slice_vs_truth",
+                      ((g + 1) / 2).unsqueeze(-1).expand(-1, -1, 3), tonemap=False)
+
+    def _log_direct(self, trainer, pl_module) -> None:
+        """Outside a validation loop: straight to the loggers, with the clock beside."""
+        values = self.measure(trainer, pl_module)
+        if not values:
+            return
+        clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
+        if clock is not None:
+            values["time/wall_s"] = clock.seconds()
+        for logger in trainer.loggers:
+            logger.log_metrics(values, step=trainer.global_step)
+            logger.save()
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        if trainer.global_step == 0:
+            self._log_direct(trainer, pl_module)
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        if trainer.sanity_checking:
+            return
+        for key, value in self.measure(trainer, pl_module).items():
+            pl_module.log(key, value)
+        self._last_measured = trainer.global_step
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if self._last_measured != trainer.global_step:
+            self._log_direct(trainer, pl_module)

@@ -18,6 +18,7 @@ import torch
 
 from nrt.cameras import Intrinsics, pixel_rays
 from nrt.data.exr import read_exr
+from nrt.data.grids import PROPERTY_KEYS, load_property_grids
 from nrt.errors import DatasetError
 from nrt.physics.envmap import EnvironmentMap
 
@@ -168,27 +169,8 @@ def _ground_truth(root: Path) -> dict[str, torch.Tensor] | None:
         log.info("No %s in %s: metrics that need ground truth will be skipped.",
                  GROUND_TRUTH_FILE, root)
         return None
-    try:
-        with np.load(path) as data:
-            arrays = {k: data[k] for k in ("sigma_a", "sigma_s", "g") if k in data}
-    except Exception as exc:
-        raise _fail(path, f"is not a readable NumPy .npz archive ({exc}); re-export it with "
-                          "numpy.savez (sigma_a, sigma_s, g) or remove it.") from exc
-    missing = {"sigma_a", "sigma_s", "g"} - set(arrays)
-    if missing:
-        raise _fail(path, f"lacks arrays {sorted(missing)}; it needs sigma_a, sigma_s "
-                          "(Nz, Ny, Nx, 3) and g (Nz, Ny, Nx).")
-    grid = arrays["g"].shape
-    if len(grid) != 3:
-        raise _fail(path, f"array 'g' has shape {grid}, expected a grid (Nz, Ny, Nx).")
-    for key, want in (("sigma_a", (*grid, 3)), ("sigma_s", (*grid, 3))):
-        if arrays[key].shape != want:
-            raise _fail(path, f"array '{key}' has shape {arrays[key].shape}, expected {want} "
-                              "with g of shape (Nz, Ny, Nx).")
-    for key, a in arrays.items():
-        if not np.all(np.isfinite(a)):
-            raise _fail(path, f"array '{key}' holds NaN or Inf values.")
-    return {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in arrays.items()}
+    grids = load_property_grids(path)
+    return {k: grids[k] for k in PROPERTY_KEYS}
 
 
 def load_dataset(root: str | Path, split: str = "train") -> SceneDataset:

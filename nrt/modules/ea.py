@@ -83,20 +83,20 @@ class EAModule(L.LightningModule):
         self.log("train/loss", loss, prog_bar=True)
         return loss
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
+    def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
         h, w = batch["shape"]
         pred = render_rays(self.field, batch["origins"], batch["dirs"], batch["background"],
                            self.hparams.samples_per_ray, jitter=False,
                            chunk=self.hparams.eval_chunk)
         ref = batch["rgb"]
-        self.log("val/psnr", psnr(pred, ref), batch_size=1)
         view = int(batch["view"])
         if view not in self._baseline_psnr:  # medium-free prediction: background only
             self._baseline_psnr[view] = float(psnr(batch["background"], ref))
         self.log("val/psnr_background_only", self._baseline_psnr[view], batch_size=1)
         if batch_idx == 0:
             log_image(self, "val/render_vs_truth",
-                            torch.cat((pred.reshape(h, w, 3), ref.reshape(h, w, 3)), 1))
+                      torch.cat((pred.reshape(h, w, 3), ref.reshape(h, w, 3)), 1))
+        return {"image": pred.reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
 
     @torch.no_grad()
     def density_grid(self, resolution: int) -> torch.Tensor:

@@ -19,9 +19,9 @@ import time
 from pathlib import Path
 
 import lightning as L
-import numpy as np
 import torch
 
+from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.data.samplers import (
     DensityPointSampler,
     EnvironmentDirectionSampler,
@@ -33,7 +33,7 @@ from nrt.losses.boundary import boundary_loss
 from nrt.losses.observation import exit_radiance, observation_loss
 from nrt.losses.rte import DirectSource, rte_loss
 from nrt.losses.vre import transmitted_background, vre_loss, vre_render
-from nrt.metrics import property_mse, psnr
+from nrt.metrics import psnr
 from nrt.modules.ea import load_ea_field
 from nrt.modules.light_field import LightField
 from nrt.modules.medium import GroundTruthMedium, Medium, NeuralMedium
@@ -278,11 +278,10 @@ class RTEModule(L.LightningModule):
             out["exit"].append(exit_)
         return {k: torch.cat(v) for k, v in out.items()}
 
-    def validation_step(self, batch: dict, batch_idx: int) -> None:
+    def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
         h, w = batch["shape"]
         ref = batch["rgb"]
         pred = self.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
-        self.log("val/psnr", psnr(pred["vre"], ref), batch_size=1)
         self.log("val/psnr_exit", psnr(pred["exit"], ref), batch_size=1)
         scale = self.light.radiance_scale
         self.log("val/image_mse", torch.mean(((pred["vre"] - ref) / scale) ** 2), batch_size=1)
@@ -291,6 +290,7 @@ class RTEModule(L.LightningModule):
         if batch_idx == 0:
             log_image(self, "val/vre|exit|truth", torch.cat(
                 [p.reshape(h, w, 3) for p in (pred["vre"], pred["exit"], ref)], 1))
+        return {"image": pred["vre"].reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
 
     def _view_baselines(self, batch: dict) -> dict[str, float]:
         """PSNR of medium-free (background only) and no-scattering predictions (the true
@@ -310,55 +310,25 @@ class RTEModule(L.LightningModule):
             self._baselines[view] = out
         return self._baselines[view]
 
-    def property_grids(self, resolution: int) -> dict[str, torch.Tensor]:
+    def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
+        """The learned medium on R^3 cells (ground-truth layout); None in forward mode."""
+        if not isinstance(self.medium, NeuralMedium):
+            return None
         return self.medium.grids(resolution)
-
-    def on_train_start(self) -> None:
-        if self.global_step == 0:  # the starting point of accuracy-versus-time curves
-            for key, value in self._properties().items():
-                for logger in self.loggers:
-                    logger.log_metrics({key: float(value), "time/wall_s": 0.0}, step=0)
 
     def on_validation_epoch_end(self) -> None:
         self._density_sampler = None  # follow the medium as it learns
-        for key, value in self._properties(slices=True).items():
-            self.log(key, value)
-
-    def _properties(self, slices: bool = False) -> dict[str, torch.Tensor]:
-        """Property MSEs against ground truth (when there is one and the medium learns)."""
-        gt = self.trainer.datamodule.ground_truth if self.trainer.datamodule else None
-        if gt is None or not isinstance(self.medium, NeuralMedium):
-            return {}
-        learned = self.property_grids(gt["sigma_a"].shape[0])
-        truth = {k: v.to(self.device) for k, v in gt.items()}
-        with_g = self.medium.phase != "none"
-        if slices:
-            self._log_property_slices(learned, truth, with_g)
-        return {f"val/mse_{k}_x100": v for k, v in property_mse(learned, truth, with_g).items()}
-
-    def _log_property_slices(self, learned: dict, truth: dict, with_g: bool) -> None:
-        mid = truth["sigma_a"].shape[0] // 2
-        for key in ("sigma_a", "sigma_s"):
-            panel = torch.cat((learned[key][mid], truth[key][mid]), 1)
-            log_image(self, f"val/{key}_slice_vs_truth", panel, tonemap=False)
-        if with_g:
-            g = torch.cat((learned["g"][mid], truth["g"][mid]), 1)
-            log_image(self, "val/g_slice_vs_truth",
-                      ((g + 1) / 2).unsqueeze(-1).expand(-1, -1, 3), tonemap=False)
 
     # ------------------------------------------------------------------ export
     def export(self, run_dir: str | Path) -> dict[str, str]:
-        """Write ``medium_grids.npz`` in the ground truth's layout (``sigma_a``, ``sigma_s``
-        (R, R, R, 3), ``g`` (R, R, R), ``bbox``) at ``property_resolution`` (default: the
-        ground truth's, else 64)."""
+        """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) at ``property_resolution``
+        (default: the ground truth's, else 64)."""
         if not isinstance(self.medium, NeuralMedium):
             return {}
         res = self.hparams.property_resolution
         if res is None:
             gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
             res = gt["sigma_a"].shape[0] if gt is not None else 64
-        grids = self.property_grids(res)
-        path = Path(run_dir) / "medium_grids.npz"
-        np.savez_compressed(path, bbox=self.medium.bbox.cpu().numpy(),
-                            **{k: v.cpu().numpy().astype(np.float32) for k, v in grids.items()})
+        path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, self.property_grids(res),
+                                   self.medium.bbox)
         return {"medium_grids": str(path)}
