@@ -203,3 +203,45 @@ class PropertyMetrics(L.Callback):
     def on_train_end(self, trainer, pl_module) -> None:
         if self._last_measured != trainer.global_step:
             self._log_direct(trainer, pl_module)
+
+
+class RerenderEvaluation(L.Callback):
+    """Periodic ``nrt-eval``-style re-render during training (off when
+    ``every_n_validations`` is 0): every n-th validation, the current medium is rendered
+    with Mitsuba for ``max_views`` held-out views per environment (``novel``: those not
+    trained on) at ``spp``, and ``eval/psnr_<group>``, ``eval/ssim_<group>`` are logged
+    next to ``time/wall_s``. Costs one Mitsuba render per view; the clock is paused."""
+
+    def __init__(self, every_n_validations: int = 0, spp: int = 16, max_views: int = 2,
+                 environments: str | list = "novel", resolution: int | None = None):
+        self.every, self.spp, self.max_views = every_n_validations, spp, max_views
+        self.environments, self.resolution = environments, resolution
+        self._count = 0
+        self._data = None
+
+    def on_validation_epoch_end(self, trainer, pl_module) -> None:
+        if self.every <= 0 or trainer.sanity_checking or getattr(
+                pl_module, "property_grids", None) is None:
+            return
+        self._count += 1
+        if self._count % self.every:
+            return
+        from nrt.data.dataset import load_dataset
+        from nrt.evaluation.evaluate import Evaluation, rerender_metrics
+
+        dm = trainer.datamodule
+        if self._data is None:
+            self._data = load_dataset(dm.dataset_dir, "test")
+        gt = self._data.ground_truth
+        grids = pl_module.property_grids(self.resolution or (gt["g"].shape[0] if gt is not None
+                                                             else 64))
+        if grids is None:
+            return
+        result = Evaluation()
+        settings = {"environments": self.environments, "max_views": self.max_views,
+                    "spp": self.spp, "noise_floor": False}
+        rerender_metrics(grids, pl_module.effects, self._data,
+                         dm.train_data.environments_used(), settings, None, result)
+        for key, value in result.metrics.items():
+            if key.startswith(("psnr_", "ssim_")) and "_env_" not in key:
+                pl_module.log(f"eval/{key}", value)

@@ -1,7 +1,7 @@
 """What every nrt command does before and around its Hydra task.
 
 - registers the OmegaConf resolvers the configs use (``nrt_pid``, ``nrt_run_dir``,
-  ``nrt_resume_tag``);
+  ``nrt_eval_dir``, ``nrt_resume_tag``);
 - tunes glibc malloc so large per-step temporaries are reused instead of being mmap'd
   and unmapped every step (DESIGN.md section 4: 3-4x faster training steps on CPU);
 - lets idle OpenMP threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``, unless set):
@@ -58,6 +58,8 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("nrt_pid", lambda: os.getpid())
     if not OmegaConf.has_resolver("nrt_run_dir"):
         OmegaConf.register_new_resolver("nrt_run_dir", run_dirs.run_dir)
+    if not OmegaConf.has_resolver("nrt_eval_dir"):
+        OmegaConf.register_new_resolver("nrt_eval_dir", run_dirs.eval_dir)
     if not OmegaConf.has_resolver("nrt_resume_tag"):
         OmegaConf.register_new_resolver("nrt_resume_tag", run_dirs.resume_tag)
 

@@ -8,11 +8,14 @@ A resumed run must not overwrite what the first one wrote: its Hydra config goes
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from pathlib import Path
 
 LAST_CKPT = Path("checkpoints") / "last.ckpt"
+RUN_FILE = "run.json"
+"""What nrt-train records about a run (stage, scene, dataset, environments, exports)."""
 
 _chosen: dict[tuple[str, str], str] = {}
 _tags: dict[str, str] = {}
@@ -47,3 +50,17 @@ def resume_tag(resume) -> str:
     if resume in (None, False):
         return ""
     return _tags.setdefault(str(resume), f"resumed-{time.strftime('%Y-%m-%d_%H-%M-%S')}")
+
+
+def write_run_info(run_dir: str | Path, **info) -> None:
+    """Merge ``info`` into the run folder's ``run.json``."""
+    path = Path(run_dir) / RUN_FILE
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    path.write_text(json.dumps({**old, **info}, indent=1))
+
+
+def eval_dir(run, output_dir: str) -> str:
+    """Resolver ``${nrt_eval_dir:run,output_dir}``: ``<run>/eval/<timestamp>-<pid>`` for a
+    run, else ``<output_dir>/eval/<timestamp>-<pid>``; never an existing folder."""
+    base = Path(str(run)) / "eval" if run not in (None, "", "None") else Path(output_dir) / "eval"
+    return _chosen.setdefault(("eval", str(base)), new_run_dir(base))

@@ -16,7 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import run_app
-from nrt.cli.run_dirs import LAST_CKPT, latest_run_with_checkpoint
+from nrt.cli.run_dirs import LAST_CKPT, latest_run_with_checkpoint, write_run_info
 from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)
@@ -64,6 +64,10 @@ def train_task(cfg: DictConfig) -> dict:
                                  cfg.paths.data_dir, variant=cfg.render.variant,
                                  progress=cfg.render.progress)
     datamodule = hydra.utils.instantiate(cfg.data, dataset_dir=str(dataset_dir))
+    datamodule.setup()
+    write_run_info(run_dir, stage=cfg.stage.name, scene=cfg.scene.name,
+                   dataset_dir=str(Path(dataset_dir).resolve()),
+                   environments=datamodule.train_data.environments_used())
     resolve_ea_checkpoint(cfg)
     model = hydra.utils.instantiate(cfg.model, _convert_="all")
     callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
@@ -75,6 +79,7 @@ def train_task(cfg: DictConfig) -> dict:
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
     exports = model.export(run_dir) if hasattr(model, "export") else {}
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+    write_run_info(run_dir, exports=exports, final_metrics=metrics)
     log.info("Finished: %s", {k: round(v, 4) for k, v in metrics.items()})
     return {"run_dir": str(run_dir), "metrics": metrics, "exports": exports}
 

@@ -52,6 +52,10 @@ class SceneDataset:
     def __len__(self) -> int:
         return self.images.shape[0]
 
+    def environments_used(self) -> list[str]:
+        """Names of the environments lighting this split's frames."""
+        return [self.env_names[i] for i in sorted(set(self.env_index.tolist()))]
+
     def select_environments(self, wanted: list[str | int]) -> SceneDataset:
         """The frames lit by the environments ``wanted`` (names, or positions in
         ``env_names``); environment indices keep their meaning."""

@@ -12,6 +12,7 @@ import logging
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -96,15 +97,28 @@ def unit_cube_to_box(mi, bbox: np.ndarray):
     return mi.ScalarTransform4f().translate(lo.tolist()).scale((hi - lo).tolist())
 
 
-def medium_dict(mi, grids: dict, spec: dict) -> dict:
-    """Mitsuba ``heterogeneous`` medium of property grids (``[z, y, x]`` arrays)."""
-    effects = spec["effects"]
-    to_world = unit_cube_to_box(mi, np.asarray(spec["bbox"]))
+def mitsuba_properties(grids: dict, effects: dict) -> dict[str, np.ndarray]:
+    """Mitsuba's parameters of property grids (``[z, y, x]`` arrays): ``sigma_t`` (one
+    channel unless chromatic), ``albedo`` (3 channels), and for the phase ``g``: the grid
+    (R, R, R, 1) when g varies, the sigma_s-weighted mean (a float) for one shared g."""
     sigma_s = np.asarray(grids["sigma_s"], np.float32)
     sigma_t = np.asarray(grids["sigma_a"], np.float32) + sigma_s
     albedo = np.where(sigma_t > 0, sigma_s / np.maximum(sigma_t, 1e-30), 0.0).astype(np.float32)
-    if not effects["chromatic"]:
-        sigma_t = sigma_t[..., :1]
+    out = {"sigma_t": sigma_t if effects["chromatic"] else sigma_t[..., :1], "albedo": albedo}
+    g = np.asarray(grids["g"], np.float32)
+    if effects["phase"] == "varying_hg":
+        out["g"] = g[..., None]
+    elif effects["phase"] == "hg":
+        weight = sigma_s.mean(-1).astype(np.float64)
+        out["g"] = float((weight * g).sum() / weight.sum()) if weight.sum() > 0 else float(g.mean())
+    return out
+
+
+def medium_dict(mi, grids: dict, bbox, effects: dict) -> dict:
+    """Mitsuba ``heterogeneous`` medium of property grids (``[z, y, x]`` arrays) filling
+    the box ``bbox`` (2, 3), with the phase the scene's effects declare."""
+    to_world = unit_cube_to_box(mi, np.asarray(bbox))
+    props = mitsuba_properties(grids, effects)
 
     def grid(data: np.ndarray) -> dict:
         return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(data)),
@@ -114,11 +128,11 @@ def medium_dict(mi, grids: dict, spec: dict) -> dict:
     if phase == "isotropic":
         phase_dict = {"type": "isotropic"}
     elif phase == "hg":
-        phase_dict = {"type": "hg", "g": float(spec["medium"]["elements"][0]["g"])}
+        phase_dict = {"type": "hg", "g": props["g"]}
     else:
-        phase_dict = {"type": "nrt_hg_grid", "g": grid(np.asarray(grids["g"])[..., None])}
-    return {"type": "heterogeneous", "sigma_t": grid(sigma_t), "albedo": grid(albedo),
-            "scale": 1.0, "phase": phase_dict}
+        phase_dict = {"type": "nrt_hg_grid", "g": grid(props["g"])}
+    return {"type": "heterogeneous", "sigma_t": grid(props["sigma_t"]),
+            "albedo": grid(props["albedo"]), "scale": 1.0, "phase": phase_dict}
 
 
 def max_depth(order: int) -> int:
@@ -127,9 +141,11 @@ def max_depth(order: int) -> int:
 
 
 def scene_dict(mi, spec: dict, grids: dict | None, envmap: np.ndarray, width: int,
-               height: int, fov_x_deg: float, spp: int) -> dict:
-    """A complete scene: envmap (unless all black), medium box (if ``grids``), point emitters,
-    one sensor."""
+               height: int, fov_x_deg: float, spp: int,
+               extra_lights: list[dict] | None = None) -> dict:
+    """A complete scene: envmap (unless all black), medium box (if ``grids``), the scene's
+    point emitters and ``extra_lights`` (:func:`emitter_dict`), one sensor. ``spec`` needs
+    only ``bbox`` and ``effects``."""
     bbox = np.asarray(spec["bbox"], float)
     envmap = np.ascontiguousarray(envmap, dtype=np.float32)
     scene = {
@@ -155,12 +171,43 @@ def scene_dict(mi, spec: dict, grids: dict | None, envmap: np.ndarray, width: in
             "type": "cube",
             "to_world": mi.ScalarTransform4f().translate(centre.tolist()).scale(half.tolist()),
             "bsdf": {"type": "null"},
-            "interior": medium_dict(mi, grids, spec),
+            "interior": medium_dict(mi, grids, bbox, spec["effects"]),
         }
     for i, e in enumerate(spec["effects"]["emitters"]):
-        scene[f"point_light_{i}"] = {"type": "point", "position": e["position"],
-                                     "intensity": {"type": "rgb", "value": e["intensity"]}}
+        scene[f"point_light_{i}"] = emitter_dict(mi, {"type": "point", **e})
+    for i, light in enumerate(extra_lights or []):
+        scene[f"extra_light_{i}"] = emitter_dict(mi, light)
     return scene
+
+
+LIGHT_TYPES = ("point", "spot")
+
+
+def emitter_dict(mi, light: dict) -> dict:
+    """A local Mitsuba emitter: ``{type: point, position, intensity}`` or ``{type: spot,
+    position, target, intensity, cutoff_deg (20), beam_width_deg (0.75 cutoff)}``, with
+    ``intensity`` RGB radiant intensity (W/sr per unit area of radiance)."""
+    kind = light.get("type", "point")
+    if kind not in LIGHT_TYPES:
+        raise NrtError(f"Light {dict(light)}: type must be one of {list(LIGHT_TYPES)}, got "
+                       f"'{kind}'.")
+    missing = {"position", "intensity"} | ({"target"} if kind == "spot" else set())
+    missing -= set(light)
+    if missing:
+        raise NrtError(f"Light {dict(light)} lacks {sorted(missing)}: a point light needs "
+                       "position and intensity [r, g, b]; a spot also target [x, y, z].")
+    intensity = {"type": "rgb", "value": [float(v) for v in light["intensity"]]}
+    position = [float(v) for v in light["position"]]
+    if kind == "point":
+        return {"type": "point", "position": position, "intensity": intensity}
+    cutoff = float(light.get("cutoff_deg", 20.0))
+    target = [float(v) for v in light["target"]]
+    axis = np.subtract(target, position)
+    up = [0, 0, 1] if abs(axis[1]) > 0.99 * np.linalg.norm(axis) else [0, 1, 0]
+    return {"type": "spot", "intensity": intensity, "cutoff_angle": cutoff,
+            "beam_width": float(light.get("beam_width_deg", 0.75 * cutoff)),
+            "to_world": mi.ScalarTransform4f().look_at(
+                origin=position, target=target, up=up)}
 
 
 class ViewRenderer:
@@ -180,3 +227,47 @@ class ViewRenderer:
         self.params.update()
         img = mi.render(self.scene, spp=int(spp), seed=int(seed))
         return np.asarray(img, dtype=np.float32)[..., :3]
+
+
+def write_medium_files(mi, folder: str | Path, grids: dict, bbox, effects: dict) -> dict[str, str]:
+    """Export property grids for Mitsuba: ``sigma_t.vol``, ``albedo.vol`` (and ``g.vol``
+    when g varies) in Mitsuba's binary grid format, and ``medium.xml``, a scene holding the
+    medium box (load it with ``mi.load_file`` or ``<include>`` it; a g grid needs the
+    ``nrt_hg_grid`` plugin, registered by :func:`select_variant`)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    props = mitsuba_properties(grids, effects)
+    files = {}
+    for key, value in props.items():
+        if isinstance(value, np.ndarray):
+            files[key] = folder / f"{key}.vol"
+            mi.VolumeGrid(np.ascontiguousarray(value, np.float32)).write(str(files[key]))
+    lo, hi = (np.asarray(b, float) for b in np.asarray(bbox))
+    box = (f'<transform name="to_world"><scale value="{_xyz(hi - lo)}"/>'
+           f'<translate value="{_xyz(lo)}"/></transform>')
+    cube = (f'<transform name="to_world"><scale value="{_xyz((hi - lo) / 2)}"/>'
+            f'<translate value="{_xyz((hi + lo) / 2)}"/></transform>')
+
+    def volume(name: str) -> str:
+        return (f'<volume type="gridvolume" name="{name}"><string name="filename" '
+                f'value="{files[name].name}"/>{box}</volume>')
+    phase = effects["phase"]
+    if phase == "isotropic":
+        phase_xml = '<phase type="isotropic"/>'
+    elif phase == "hg":
+        phase_xml = f'<phase type="hg"><float name="g" value="{props["g"]:.6f}"/></phase>'
+    else:
+        phase_xml = f'<phase type="nrt_hg_grid">{volume("g")}</phase>'
+    xml = (f'<scene version="3.0.0">\n  <!-- nrt export: medium box {lo.tolist()} .. '
+           f'{hi.tolist()} -->\n  <shape type="cube" id="medium_box">\n    {cube}\n'
+           '    <bsdf type="null"/>\n    <medium type="heterogeneous" name="interior">\n'
+           f'      {volume("sigma_t")}\n      {volume("albedo")}\n'
+           f'      <float name="scale" value="1"/>\n      {phase_xml}\n    </medium>\n'
+           '  </shape>\n</scene>\n')
+    files["xml"] = folder / "medium.xml"
+    files["xml"].write_text(xml)
+    return {k: str(v) for k, v in files.items()}
+
+
+def _xyz(v) -> str:
+    return ", ".join(f"{float(x):.9g}" for x in v)

@@ -1,0 +1,54 @@
+"""``nrt-report``: accuracy-versus-time curves of runs (or of a multirun sweep).
+
+    nrt-report outputs/multirun/<timestamp>            # every run of a sweep
+    nrt-report RUN_DIR [RUN_DIR ...] --out DIR         # e.g. rte and dpt side by side
+
+Writes ``accuracy_vs_time.png`` (property MSE x100 and held-out PSNR against training
+seconds, one curve per run), ``accuracy_vs_time.csv`` (every point) and ``summary.md``
+(final values, nrt-eval's novel-illumination PSNR, share of the accuracy/time frontier).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from nrt.errors import NrtError
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="nrt-report", description=__doc__.split("\n")[0])
+    parser.add_argument("paths", nargs="+", help="run folders, or folders holding runs")
+    parser.add_argument("--out", help="output folder (default: <the one folder given>/report, "
+                        "or outputs/reports/<timestamp> for several)")
+    args = parser.parse_args(argv)
+    try:
+        from nrt.evaluation import report
+
+        runs = [report.read_run(p) for p in report.find_runs(args.paths)]
+        report.label_runs(runs)
+        if args.out:
+            out = Path(args.out)
+        elif len(args.paths) == 1:
+            out = Path(args.paths[0]) / "report"
+        else:
+            out = Path("outputs") / "reports" / time.strftime("%Y-%m-%d_%H-%M-%S")
+        out.mkdir(parents=True, exist_ok=True)
+        shares = report.frontier_share(runs, "val/mse_sigma_t_x100")
+        png = report.plot(runs, out / "accuracy_vs_time.png")
+        report.write_csv(runs, out / "accuracy_vs_time.csv")
+        summary = report.summary_markdown(runs, shares)
+        (out / "summary.md").write_text(summary)
+    except NrtError as exc:
+        sys.exit(f"nrt-report: error: {exc}")
+    print(summary)
+    if shares:
+        best = max(shares, key=shares.get)
+        print(f"Best accuracy/time frontier (sigma_t MSE): {best} ({shares[best]:.0%} of it)")
+    print(f"Wrote {png}, {out / 'accuracy_vs_time.csv'} and {out / 'summary.md'}")
+
+
+if __name__ == "__main__":
+    main()

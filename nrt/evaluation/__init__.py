@@ -1,0 +1,1 @@
+"""Evaluation of trained media: export, Mitsuba re-renders, metrics, reports."""

@@ -1,0 +1,68 @@
+"""Re-render property grids with Mitsuba ``volpath`` from a dataset's cameras.
+
+The same scene description as the dataset renderer (:mod:`nrt.data.mitsuba_backend`):
+a medium built for the scene's effects (spatially varying g through the ``nrt_hg_grid``
+plugin), the frame's environment map, the scene's point emitters, plus optional extra
+local lights for relighting. Seeds differ from the dataset's, so a re-render of the true
+medium differs from the photos by Monte Carlo noise alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from nrt.data import mitsuba_backend
+from nrt.data.dataset import SceneDataset
+from nrt.errors import NrtError
+
+SEED_BASE = 7_000_003
+"""Re-render seeds start here (datasets use seeds below 10^6)."""
+
+
+def numpy_grids(grids: Mapping) -> dict[str, np.ndarray]:
+    return {k: np.asarray(torch.as_tensor(grids[k]).detach().cpu(), np.float32)
+            for k in ("sigma_a", "sigma_s", "g")}
+
+
+def fov_x_deg(data: SceneDataset) -> float:
+    """Horizontal field of view of the dataset's pinhole camera (centred, square pixels)."""
+    intr = data.intrinsics
+    if abs(intr.cx - intr.width / 2) > 1e-3 * intr.width or \
+            abs(intr.cy - intr.height / 2) > 1e-3 * intr.height or \
+            abs(intr.fx - intr.fy) > 1e-3 * intr.fx:
+        raise NrtError(f"Dataset '{data.root}': re-rendering with Mitsuba needs square pixels "
+                       "and a centred principal point (cx = w/2, cy = h/2, fl_x = fl_y) in "
+                       "transforms_test.json; this dataset has "
+                       f"fl=({intr.fx}, {intr.fy}), c=({intr.cx}, {intr.cy}).")
+    return math.degrees(intr.camera_angle_x)
+
+
+def render_frames(grids: Mapping | None, effects: dict, data: SceneDataset,
+                  frames: Sequence[int], spp: int, seed: int = 0,
+                  extra_lights: list[dict] | None = None,
+                  envmap: np.ndarray | None = None) -> np.ndarray:
+    """Linear RGB renders (F, H, W, 3) of ``grids`` (None: no medium) seen by the cameras
+    of ``frames`` of ``data``, each under its own environment (or ``envmap`` for all)."""
+    mi = mitsuba_backend.select_variant("auto")
+    spec = {"bbox": data.bbox.tolist(), "effects": effects}
+    arrays = numpy_grids(grids) if grids is not None else None
+    intr = data.intrinsics
+    out = np.zeros((len(frames), intr.height, intr.width, 3), np.float32)
+    groups: dict[int, list[int]] = {}
+    for pos, frame in enumerate(frames):
+        key = -1 if envmap is not None else int(data.env_index[frame])
+        groups.setdefault(key, []).append(pos)
+    for env, positions in groups.items():
+        radiance = envmap if env < 0 else data.envmaps[env].radiance.cpu().numpy()
+        renderer = mitsuba_backend.ViewRenderer(mi, mitsuba_backend.scene_dict(
+            mi, spec, arrays, radiance, intr.width, intr.height, fov_x_deg(data), spp,
+            extra_lights=extra_lights))
+        for pos in positions:
+            frame = int(frames[pos])
+            out[pos] = renderer.render(data.c2w[frame].cpu().numpy(), spp,
+                                       SEED_BASE + 1009 * seed + frame)
+    return out
