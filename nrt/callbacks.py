@@ -179,12 +179,13 @@ class PropertyMetrics(L.Callback):
 
     def _log_direct(self, trainer, pl_module) -> None:
         """Outside a validation loop: straight to the loggers, with the clock beside."""
+        clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
+        seconds = clock.seconds() if clock is not None else None  # before measuring
         values = self.measure(trainer, pl_module)
         if not values:
             return
-        clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
-        if clock is not None:
-            values["time/wall_s"] = clock.seconds()
+        if seconds is not None:
+            values["time/wall_s"] = seconds
         for logger in trainer.loggers:
             logger.log_metrics(values, step=trainer.global_step)
             logger.save()
