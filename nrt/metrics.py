@@ -43,16 +43,19 @@ LPIPS_BACKBONES = {"alex": ("alexnet", "AlexNet_Weights"), "vgg": ("vgg16", "VGG
                    "squeeze": ("squeezenet1_1", "SqueezeNet1_1_Weights")}
 
 
-def lpips_backbone_file(net: str = "alex") -> Path:
-    """Where torchvision looks for LPIPS's pretrained backbone: the torch hub cache
-    (``$TORCH_HOME/hub/checkpoints/<file>``), the file named by the weights' URL."""
+def _backbone_url(net: str) -> str:
     import torchvision
 
     if net not in LPIPS_BACKBONES:
         raise NrtError(f"metrics.lpips_net must be one of {sorted(LPIPS_BACKBONES)}, got "
                        f"'{net}'.")
-    weights = getattr(torchvision.models, LPIPS_BACKBONES[net][1]).DEFAULT
-    return Path(torch.hub.get_dir()) / "checkpoints" / Path(weights.url).name
+    return getattr(torchvision.models, LPIPS_BACKBONES[net][1]).DEFAULT.url
+
+
+def lpips_backbone_file(net: str = "alex") -> Path:
+    """Where torchvision looks for LPIPS's pretrained backbone: the torch hub cache
+    (``$TORCH_HOME/hub/checkpoints/<file>``), the file named by the weights' URL."""
+    return Path(torch.hub.get_dir()) / "checkpoints" / Path(_backbone_url(net)).name
 
 
 class LPIPS:
@@ -68,11 +71,11 @@ class LPIPS:
 
         path = lpips_backbone_file(net)
         if not path.is_file():
-            url = getattr(__import__("torchvision").models, LPIPS_BACKBONES[net][1]).DEFAULT.url
             raise NrtError(f"LPIPS needs the pretrained {LPIPS_BACKBONES[net][0]} backbone at "
                            f"'{path}', which is missing (this machine cannot download it). "
-                           f"Copy the file from {url} there (the folder is $TORCH_HOME/hub/"
-                           "checkpoints, default ~/.cache/torch), or skip LPIPS with "
+                           f"Copy the file from {_backbone_url(net)} there (the folder is "
+                           "$TORCH_HOME/hub/checkpoints, default ~/.cache/torch), or skip "
+                           "LPIPS with "
                            "metrics.lpips=false.")
         self.metric = LearnedPerceptualImagePatchSimilarity(net_type=net, normalize=True)
         self.metric = self.metric.to(device)
