@@ -135,10 +135,11 @@ class PropertyMetrics(L.Callback):
 
     For a stage whose module learns a medium (``property_grids(resolution)`` returns grids
     in the ground truth's layout, else None) and a dataset with ``ground_truth.npz``:
-    ``val/mse_{sigma_a,sigma_s,sigma_t}_x100`` and, unless the scene is isotropic,
-    ``val/mse_g_x100`` (weighted by the true sigma_s), at step 0 (the starting point of
-    accuracy-versus-time curves), after each validation and when training ends; with
-    ``slices``, the middle z-slices learned | true to TensorBoard.
+    ``val/mse_{sigma_a,sigma_s,sigma_t}_x100`` and, unless the scene is isotropic or the
+    module keeps g fixed (``learns_g = False``), ``val/mse_g_x100`` (weighted by the true
+    sigma_s), at step 0 (the starting point of accuracy-versus-time curves), after each
+    validation and when training ends; with ``slices``, the middle z-slices learned | true
+    to TensorBoard.
     """
 
     def __init__(self, slices: bool = True):
@@ -158,7 +159,7 @@ class PropertyMetrics(L.Callback):
 
         truth = {k: v.to(learned["sigma_a"].device) for k, v in gt.items()}
         effects = getattr(pl_module, "effects", None) or {}
-        with_g = effects.get("phase", "hg") != "isotropic"
+        with_g = effects.get("phase", "hg") != "isotropic" and getattr(pl_module, "learns_g", True)
         if self.slices:
             self._log_slices(pl_module, learned, truth, with_g)
         return {f"val/mse_{k}_x100": float(v)

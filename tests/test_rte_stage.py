@@ -42,7 +42,7 @@ def test_rte_after_ea_via_cli(tiny_ea_run, tiny_dataset):
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"
     proc = run_train(out, tiny_dataset.parent, stage="rte")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert f"Stage 2 starts from EA checkpoint {ea_ckpt}" in proc.stdout + proc.stderr
+    assert f"Stage rte starts from EA checkpoint {ea_ckpt}" in proc.stdout + proc.stderr
     run = only_run_dir(out, "rte")
     rows = read_csv_metrics(run)
     for name in ("rte", "bc", "obs", "vre"):

@@ -50,7 +50,7 @@ def resolve_ea_checkpoint(cfg: DictConfig) -> None:
                        "pass init.ea_ckpt=<path/to/last.ckpt>, or use init=none for the "
                        "single-stage ablation.")
     cfg.init.ea_ckpt = str(run / LAST_CKPT)
-    log.info("Stage 2 starts from EA checkpoint %s", cfg.init.ea_ckpt)
+    log.info("Stage %s starts from EA checkpoint %s", cfg.stage.name, cfg.init.ea_ckpt)
 
 
 def train_task(cfg: DictConfig) -> dict:

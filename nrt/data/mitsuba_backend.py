@@ -220,12 +220,15 @@ class ViewRenderer:
         self._key = next(k for k in self.params.keys() if k.endswith("to_world")
                          and k.startswith("sensor"))
 
+    def set_camera(self, c2w: np.ndarray) -> None:
+        """Place the sensor at the OpenGL camera-to-world ``c2w`` (4, 4)."""
+        self.params[self._key] = self.mi.ScalarTransform4f(opengl_to_mitsuba(c2w).tolist())
+        self.params.update()
+
     def render(self, c2w: np.ndarray, spp: int, seed: int) -> np.ndarray:
         """Linear RGB radiance (H, W, 3) float32 seen by camera ``c2w`` (OpenGL)."""
-        mi = self.mi
-        self.params[self._key] = mi.ScalarTransform4f(opengl_to_mitsuba(c2w).tolist())
-        self.params.update()
-        img = mi.render(self.scene, spp=int(spp), seed=int(seed))
+        self.set_camera(c2w)
+        img = self.mi.render(self.scene, spp=int(spp), seed=int(seed))
         return np.asarray(img, dtype=np.float32)[..., :3]
 
 

@@ -1,0 +1,272 @@
+"""Baseline: differentiable volumetric path tracing of property grids (``stage=dpt``).
+
+Optimises voxel grids of extinction ``sigma_t`` (RGB, or one grey channel) and albedo
+(RGB), and of g when the scene's phase varies (through the ``nrt_hg_grid`` plugin), so
+that Mitsuba's ``prbvolpath`` renders of the grids match the photos, with full multiple
+scattering. Mitsuba estimates the gradients by **differentiable delta tracking** (path
+replay backpropagation), not the differential ratio tracking of the paper's baseline.
+
+- Start: the EA density of the same scene (stage 1) at the coarsest grid into every
+  channel of sigma_t, a neutral albedo (``init_albedo``), g = 0.
+- Each step renders one random training view at ``spp`` with gradients; the loss is the
+  MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
+  Dr.Jit; ``dr.backward`` gives the grid gradients, which become the ``.grad`` of torch
+  parameters, and torch's Adam steps. Values are clamped after each step:
+  ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
+- Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
+  ``upsample_at`` of the steps until ``resolutions[-1]``; Adam's moments are resampled too.
+- For ``phase=hg`` the single g is not optimised: ``phase_g``, or (null) the ground
+  truth's sigma_s-weighted mean when the dataset has one (an oracle the method lacks),
+  else 0. Isotropic scenes have no g.
+
+The grids are torch parameters, so checkpoints, resume (at the resolution reached) and
+the non-finite guard work as for every stage; exports use the ground truth's layout.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
+from nrt.errors import NrtError
+from nrt.modules.tensorboard import log_image
+from nrt.physics.phase import G_MAX
+from nrt.physics.volume import cell_centres
+
+log = logging.getLogger(__name__)
+
+MITSUBA_KEYS = {"sigma_t": "sigma_t.data", "albedo": "albedo.data", "g": "g.data"}
+
+
+class DPTModule(L.LightningModule):
+    """Grids of sigma_t, albedo (and g) fitted by differentiable path tracing."""
+
+    def __init__(self, effects: dict, density: dict, resolutions: list[int],
+                 upsample_at: list[float], spp: int = 8, val_spp: int = 32,
+                 lr: float = 0.02, init_albedo: float = 0.8, max_sigma_t: float = 100.0,
+                 phase_g: float | None = None, property_resolution: int | None = None,
+                 seed: int = 0):
+        super().__init__()
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        if len(upsample_at) != len(resolutions) - 1:
+            raise NrtError(f"model.upsample_at {list(upsample_at)} needs one fraction per "
+                           f"doubling of model.resolutions {list(resolutions)} (i.e. "
+                           f"{len(resolutions) - 1}).")
+        if density.get("source") != "ea":
+            raise NrtError("stage=dpt starts from the EA density (init=ea); init.source="
+                           f"'{density.get('source')}' is not supported.")
+        self.effects = effects
+        self.learns_g = effects["phase"] == "varying_hg"  # a fixed g is not scored
+        res, channels = int(resolutions[0]), 3 if effects.get("chromatic", True) else 1
+        self.sigma_t = nn.Parameter(torch.ones(res, res, res, channels))
+        self.albedo = nn.Parameter(torch.full((res, res, res, 3), float(init_albedo)))
+        self.g = nn.Parameter(torch.zeros(res, res, res, 1)) \
+            if effects["phase"] == "varying_hg" else None
+        self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
+        self._renderer = None
+        self._frames = None
+        self._fixed_g = 0.0
+
+    # ----------------------------------------------------------------- set-up
+    def grids(self) -> dict[str, nn.Parameter]:
+        """The optimised grids by name (``g`` only when g varies)."""
+        out = {"sigma_t": self.sigma_t, "albedo": self.albedo}
+        if self.g is not None:
+            out["g"] = self.g
+        return out
+
+    def setup(self, stage: str) -> None:
+        dm = self.trainer.datamodule if self._trainer is not None else None
+        if dm is None:
+            return
+        self.bbox.copy_(dm.bbox)
+        self._init_from_ea(self.hparams.density["ea_ckpt"])  # a resume overwrites it later
+        gt = dm.ground_truth
+        if self.effects["phase"] == "hg":
+            if self.hparams.phase_g is not None:
+                self._fixed_g = float(self.hparams.phase_g)
+            elif gt is not None:
+                weight = gt["sigma_s"].double().mean(-1)
+                self._fixed_g = float((weight * gt["g"]).sum() / weight.sum().clamp_min(1e-30))
+            log.info("dpt keeps the HG g fixed at %.4f (%s)", self._fixed_g,
+                     "model.phase_g" if self.hparams.phase_g is not None else
+                     "the ground truth's: an oracle" if gt is not None else "default")
+        self._frames = dm.train_data
+        self._env = dm.environment.radiance.cpu().numpy()
+        self._val_data = dm.val_data
+
+    @torch.no_grad()
+    def _init_from_ea(self, ckpt: str | None) -> None:
+        from nrt.modules.ea import load_ea_field
+
+        if not ckpt or not Path(ckpt).is_file():
+            raise NrtError(f"init.ea_ckpt='{ckpt}' is not a checkpoint file. Train stage 1 "
+                           "first (nrt-train stage=ea scene=<same scene>) or pass "
+                           "init.ea_ckpt=<path/to/last.ckpt>.")
+        field = load_ea_field(ckpt)
+        res = self.sigma_t.shape[0]
+        pts = cell_centres(res, self.bbox.cpu()).reshape(-1, 3)
+        dens = torch.cat([field.density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
+        self.sigma_t.copy_(dens.reshape(res, res, res, 1).expand_as(self.sigma_t).clamp(
+            0, self.hparams.max_sigma_t))
+        log.info("dpt starts from the EA density of %s at %d^3 cells", ckpt, res)
+
+    def configure_optimizers(self):
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+
+    # -------------------------------------------------------------- Mitsuba
+    def property_arrays(self) -> dict[str, np.ndarray]:
+        """The grids as the ground truth's arrays: sigma_a, sigma_s (R, R, R, 3), g."""
+        sigma_t = self.sigma_t.detach().cpu().expand(*self.albedo.shape[:3], 3)
+        albedo = self.albedo.detach().cpu()
+        g = self.g.detach().cpu()[..., 0] if self.g is not None else torch.full(
+            sigma_t.shape[:3], self._fixed_g)
+        return {"sigma_a": ((1 - albedo) * sigma_t).numpy(), "sigma_s": (albedo * sigma_t).numpy(),
+                "g": g.numpy()}
+
+    def renderer(self):
+        """The Mitsuba scene (``prbvolpath``) of the current grids, built once."""
+        if self._renderer is None:
+            from nrt.data import mitsuba_backend
+
+            mi = mitsuba_backend.select_variant("auto")
+            intr = self._frames.intrinsics
+            spec = {"bbox": self.bbox.cpu().tolist(), "effects": self.effects}
+            from nrt.evaluation.rerender import fov_x_deg
+
+            scene = mitsuba_backend.scene_dict(mi, spec, self.property_arrays(), self._env,
+                                               intr.width, intr.height,
+                                               fov_x_deg(self._frames), self.hparams.spp)
+            scene["integrator"] = {"type": "prbvolpath", "max_depth": mitsuba_backend.max_depth(
+                int(self.effects["max_scattering_order"]))}
+            self._renderer = mitsuba_backend.ViewRenderer(mi, scene)
+            self._keys = {name: next(k for k in self._renderer.params.keys()
+                                     if k.endswith(suffix) and "interior" in k)
+                          for name, suffix in MITSUBA_KEYS.items() if name in self.grids()}
+        return self._renderer
+
+    def _push(self, grad: bool) -> None:
+        """Copy the torch grids into the Mitsuba scene (with gradient tracking)."""
+        import drjit as dr
+
+        r = self.renderer()
+        for name, key in self._keys.items():
+            value = r.mi.TensorXf(self.grids()[name].detach().cpu().contiguous().numpy())
+            if grad:
+                dr.enable_grad(value)
+            r.params[key] = value
+        r.params.update()
+
+    def render_view(self, c2w: torch.Tensor, spp: int, seed: int) -> torch.Tensor:
+        """A forward render (H, W, 3) of the current grids from an OpenGL camera."""
+        self._push(grad=False)
+        return torch.from_numpy(self.renderer().render(c2w.cpu().numpy(), spp, seed))
+
+    # --------------------------------------------------------------- training
+    def _resolution_now(self, step: int) -> int:
+        res = self.hparams.resolutions
+        total = max(int(self.trainer.max_steps), 1)
+        reached = sum(step >= frac * total for frac in self.hparams.upsample_at)
+        return int(res[reached])
+
+    @torch.no_grad()
+    def _resize(self, res: int) -> None:
+        """Trilinear, cell-centred resampling of every grid to res^3, and of Adam's moments
+        with it (a restart of the moments made each voxel jump by the full lr)."""
+        opt = self.optimizers().optimizer
+
+        def resample(t: torch.Tensor) -> torch.Tensor:
+            vol = t.permute(3, 0, 1, 2).unsqueeze(0)
+            return F.interpolate(vol, size=(res,) * 3, mode="trilinear",
+                                 align_corners=False)[0].permute(1, 2, 3, 0).contiguous()
+        for p in self.grids().values():
+            state = opt.state.get(p, {})
+            for key, value in state.items():
+                if torch.is_tensor(value) and value.shape == p.shape:
+                    state[key] = resample(value)
+            p.data = resample(p.data)
+        log.info("dpt grids doubled to %d^3 at step %d", res, self.global_step)
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        import drjit as dr
+
+        res = self._resolution_now(self.global_step)
+        if res != self.sigma_t.shape[0]:
+            self._resize(res)
+        start = time.perf_counter()
+        gen = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + self.global_step)
+        frame = int(torch.randint(len(self._frames), (1,), generator=gen))
+        r = self.renderer()
+        r.set_camera(self._frames.c2w[frame].numpy())
+        self._push(grad=True)
+        ref = r.mi.TensorXf(self._frames.images[frame].numpy())
+        img = r.mi.render(r.scene, r.params, spp=int(self.hparams.spp),
+                          seed=self.global_step)
+        loss = dr.mean(dr.square(dr.log(1 + dr.maximum(img, 0)) - dr.log(1 + ref)), axis=None)
+        dr.backward(loss)
+        opt = self.optimizers()
+        opt.zero_grad(set_to_none=True)
+        for name, key in self._keys.items():
+            grad = np.nan_to_num(np.asarray(dr.grad(r.params[key]), np.float32))
+            self.grids()[name].grad = torch.from_numpy(grad.reshape(self.grids()[name].shape))
+        opt.step()
+        self._clamp()
+        value = float(np.asarray(loss).reshape(-1)[0])
+        self.log("train/loss", value, prog_bar=True)
+        self.log("time/step_render_s", time.perf_counter() - start)
+        self.log("train/grid_resolution", float(res))
+        return torch.tensor(value)
+
+    @torch.no_grad()
+    def _clamp(self) -> None:
+        self.sigma_t.clamp_(0.0, float(self.hparams.max_sigma_t))
+        self.albedo.clamp_(0.0, 1.0)
+        if self.g is not None:
+            self.g.clamp_(-G_MAX, G_MAX)
+
+    # ------------------------------------------------------------- validation
+    def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
+        h, w = batch["shape"]
+        view = int(batch["view"])
+        pred = self.render_view(self._val_data.c2w[view], int(self.hparams.val_spp),
+                                seed=1_000_003 + view)
+        ref = batch["rgb"].reshape(h, w, 3).cpu()
+        if batch_idx == 0:
+            log_image(self, "val/render_vs_truth", torch.cat((pred, ref), 1))
+        return {"image": pred, "reference": ref}
+
+    def property_grids(self, resolution: int) -> dict[str, torch.Tensor]:
+        """The grids resampled to R^3 cells in the ground truth's layout."""
+        arrays = {k: torch.from_numpy(np.ascontiguousarray(v))
+                  for k, v in self.property_arrays().items()}
+        return resample_grids(arrays, resolution, self.bbox.cpu())
+
+    # -------------------------------------------------------------- resume
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Resize the grids to the checkpoint's resolution before its state is loaded."""
+        state = checkpoint.get("state_dict", {})
+        with torch.no_grad():
+            for name, p in self.grids().items():
+                if name in state and state[name].shape != p.shape:
+                    p.data = torch.zeros_like(state[name])
+
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """``medium_grids.npz`` at ``property_resolution`` (default: the ground truth's,
+        else the final grid's)."""
+        res = self.hparams.property_resolution
+        if res is None:
+            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
+            res = gt["g"].shape[0] if gt is not None else self.sigma_t.shape[0]
+        path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE,
+                                   self.property_grids(int(res)), self.bbox)
+        return {"medium_grids": str(path)}
+
