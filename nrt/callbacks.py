@@ -71,6 +71,17 @@ class WallClock(L.Callback):
         self.elapsed_before = float(state_dict.get("elapsed", 0.0))
 
 
+def training_progress(trainer) -> float:
+    """How far a run is, in [0, 1]: the larger of steps / max_steps and, with a time budget
+    (``budget_s``), training seconds / budget, so that schedules over a run's course
+    (coarse to fine, warm-ups) also complete in equal-time runs."""
+    done = trainer.global_step / max(int(trainer.max_steps), 1) if trainer.max_steps > 0 else 0.0
+    clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
+    if clock is not None and clock.budget_s:
+        done = max(done, clock.seconds() / clock.budget_s)
+    return min(done, 1.0)
+
+
 class NonFiniteGuard(L.Callback):
     """Keeps NaN and Inf out of the parameters.
 

@@ -14,7 +14,8 @@ replay backpropagation), not the differential ratio tracking of the paper's base
   parameters, and torch's Adam steps. Values are clamped after each step:
   ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
 - Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
-  ``upsample_at`` of the steps until ``resolutions[-1]``; Adam's moments are resampled too.
+  ``upsample_at`` of the run (of its steps, or of ``budget_s`` when that comes first)
+  until ``resolutions[-1]``; Adam's moments are resampled with them.
 - For ``phase=hg`` the single g is not optimised: ``phase_g``, or (null) the ground
   truth's sigma_s-weighted mean when the dataset has one (an oracle the method lacks),
   else 0. Isotropic scenes have no g.
@@ -172,11 +173,12 @@ class DPTModule(L.LightningModule):
         return torch.from_numpy(self.renderer().render(c2w.cpu().numpy(), spp, seed))
 
     # --------------------------------------------------------------- training
-    def _resolution_now(self, step: int) -> int:
-        res = self.hparams.resolutions
-        total = max(int(self.trainer.max_steps), 1)
-        reached = sum(step >= frac * total for frac in self.hparams.upsample_at)
-        return int(res[reached])
+    def _resolution_now(self) -> int:
+        """Coarse to fine over the run's course (steps, or seconds of a ``budget_s``)."""
+        from nrt.callbacks import training_progress
+
+        done = training_progress(self.trainer)
+        return int(self.hparams.resolutions[sum(done >= f for f in self.hparams.upsample_at)])
 
     @torch.no_grad()
     def _resize(self, res: int) -> None:
@@ -199,7 +201,7 @@ class DPTModule(L.LightningModule):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         import drjit as dr
 
-        res = self._resolution_now(self.global_step)
+        res = self._resolution_now()
         if res != self.sigma_t.shape[0]:
             self._resize(res)
         start = time.perf_counter()

@@ -21,6 +21,7 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from nrt.callbacks import training_progress
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.data.samplers import (
     DensityPointSampler,
@@ -150,14 +151,16 @@ class RTEModule(L.LightningModule):
             if density is not None and self.hparams.density.get("train", False):
                 groups.append({"params": list(density.parameters()), "lr": lr["density"]})
         opt = torch.optim.Adam(groups)
-        steps = max(int(self.trainer.max_steps), 1) if self._trainer is not None else 1
-        factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup * steps
+        factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup
+
+        def progress() -> float:  # of the steps, or of budget_s in equal-time runs
+            return training_progress(self.trainer) if self._trainer is not None else 0.0
 
         def decay(s: int) -> float:
-            return factor ** min(s / steps, 1.0)
+            return factor ** progress()
 
         def medium(s: int) -> float:  # the medium waits until the light field is plausible
-            return decay(s) if s >= warmup else 0.0
+            return decay(s) if progress() >= warmup else 0.0
         sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [medium] * (len(groups) - 1))
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
