@@ -36,9 +36,9 @@ class DensityPointSampler:
         r = self.resolution
         cell = torch.multinomial(self.probs, n, replacement=True, generator=generator)
         zyx = torch.stack((cell // (r * r), (cell // r) % r, cell % r), -1)
-        u = torch.rand(n, 3, dtype=torch.float64, generator=generator)
+        u = torch.rand(n, 3, dtype=torch.float64, device=cell.device, generator=generator)
         unit = (zyx.flip(-1).double() + u) / r  # x, y, z in [0, 1]
-        bbox = self.bbox.double().cpu()
+        bbox = self.bbox.double().to(cell.device)
         return (bbox[0] + unit * (bbox[1] - bbox[0])).to(self.bbox)
 
 
