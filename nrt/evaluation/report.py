@@ -119,8 +119,9 @@ def label_runs(runs: list[RunCurves]) -> None:
 
 
 def frontier_share(runs: list[RunCurves], metric: str, points: int = 200) -> dict[str, float]:
-    """Fraction of the (log-spaced) time axis on which each run is the most accurate so far,
-    comparing each run's latest value at each time: the accuracy/time frontier."""
+    """Fraction of the (log-spaced) time axis on which each run is the most accurate,
+    comparing each run's latest value at each time (the accuracy/time frontier); moments
+    when several runs tie, such as their common starting point, are not counted."""
     have = [r for r in runs if metric in r.curves and len(r.curves[metric][0]) > 1]
     if not have:
         return {}
@@ -134,8 +135,11 @@ def frontier_share(runs: list[RunCurves], metric: str, points: int = 200) -> dic
         idx = np.searchsorted(t, grid, side="right") - 1
         ok = (idx >= 0) & (grid <= t[-1] * 1.0001)
         table[i, ok] = sign * v[idx[ok]]
-    best = np.argmin(table, 0)
-    valid = np.isfinite(table.min(0))
+    best, low = np.argmin(table, 0), table.min(0)
+    ties = (np.abs(table - low) <= 1e-9 * np.abs(low)).sum(0) > 1  # e.g. the shared start
+    valid = np.isfinite(low) & ~ties
+    if not valid.any():
+        return {r.label: 0.0 for r in have}
     return {have[i].label: float(np.mean(best[valid] == i)) for i in range(len(have))}
 
 
