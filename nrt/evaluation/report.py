@@ -23,7 +23,9 @@ CURVES = ("val/mse_sigma_a_x100", "val/mse_sigma_s_x100", "val/mse_sigma_t_x100"
           "val/mse_g_x100", "val/psnr")
 """Metrics drawn, in panel order (those no run logged are left out)."""
 LOWER_IS_BETTER = {m: m.startswith("val/mse") for m in CURVES}
-IGNORED_OVERRIDES = ("hydra.", "paths.", "render.progress", "trainer.enable_progress_bar")
+IGNORED_OVERRIDES = ("hydra.", "paths.", "render.progress", "trainer.enable_progress_bar",
+                     "init.ea_ckpt", "budget.dpt.steps", "budget.rte.steps", "budget.ea.steps")
+"""Overrides that do not tell runs apart (paths, display, the step caps of budget runs)."""
 
 
 @dataclass
@@ -77,6 +79,16 @@ def _scalars(run: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return result
 
 
+def _short(override: str) -> str:
+    """``key=1234.5678`` -> ``key=1235`` (long floats make unreadable labels)."""
+    key, _, value = override.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        return override
+    return f"{key}={number:.4g}" if "." in value else override
+
+
 def latest_evaluation(run: Path) -> dict[str, float]:
     """Metrics of the run's newest ``nrt-eval`` (empty if never evaluated)."""
     files = sorted(run.glob("eval/*/metrics.json"))
@@ -87,7 +99,7 @@ def read_run(run: Path) -> RunCurves:
     info = json.loads((run / RUN_FILE).read_text())
     overrides_file = run / ".hydra" / "overrides.yaml"
     overrides = yaml.safe_load(overrides_file.read_text()) if overrides_file.is_file() else []
-    overrides = [o for o in overrides or [] if not o.startswith(IGNORED_OVERRIDES)]
+    overrides = [_short(o) for o in overrides or [] if not o.startswith(IGNORED_OVERRIDES)]
     scalars = _scalars(run)
     result = RunCurves(run, info["stage"], overrides, evaluation=latest_evaluation(run))
     if "time/wall_s" not in scalars:
@@ -200,8 +212,13 @@ def plot(runs: list[RunCurves], path: Path) -> Path:
         ax.set_xlabel("training seconds")
         ax.set_title(metric.removeprefix("val/"))
         ax.grid(True, which="both", alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    handles = {}
+    for ax in axes[0]:
+        for line in ax.get_lines():
+            handles.setdefault(line.get_label(), line)
+    fig.legend(handles.values(), handles.keys(), loc="lower center", fontsize=8,
+               ncol=min(len(handles), 4), frameon=False)
+    fig.tight_layout(rect=(0, 0.06 * ((len(handles) + 3) // 4) + 0.02, 1, 1))
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
