@@ -54,7 +54,7 @@ class DPTModule(L.LightningModule):
                  upsample_at: list[float], spp: int = 8, val_spp: int = 32,
                  lr: float = 0.02, init_albedo: float = 0.8, max_sigma_t: float = 100.0,
                  phase_g: float | None = None, property_resolution: int | None = None,
-                 seed: int = 0):
+                 ea_detail: bool = True, seed: int = 0):
         super().__init__()
         self.save_hyperparameters()
         self.automatic_optimization = False
@@ -76,6 +76,8 @@ class DPTModule(L.LightningModule):
         self._renderer = None
         self._frames = None
         self._fixed_g = 0.0
+        self._ea = {}  # the EA field (kept out of the module's parameters and checkpoints)
+        self.nonfinite_grads = 0  # of the last image_loss, zeroed before Adam
 
     # ----------------------------------------------------------------- set-up
     def grids(self) -> dict[str, nn.Parameter]:
@@ -101,9 +103,14 @@ class DPTModule(L.LightningModule):
             log.info("dpt keeps the HG g fixed at %.4f (%s)", self._fixed_g,
                      "model.phase_g" if self.hparams.phase_g is not None else
                      "the ground truth's: an oracle" if gt is not None else "default")
-        self._frames = dm.train_data
-        self._env = dm.environment.radiance.cpu().numpy()
-        self._val_data = dm.val_data
+        self.use_views(dm.train_data, dm.environment.radiance.cpu().numpy(), dm.val_data)
+
+    def use_views(self, frames, envmap: np.ndarray, val_data=None) -> None:
+        """The photos to fit (``images`` (N, H, W, 3), OpenGL ``c2w`` (N, 4, 4) and
+        ``intrinsics``, like :class:`nrt.data.dataset.SceneDataset`), lit by the
+        environment map ``envmap`` (H, W, 3), and the held-out views for validation."""
+        self._frames, self._env, self._val_data = frames, envmap, val_data
+        self._renderer = None
 
     @torch.no_grad()
     def _init_from_ea(self, ckpt: str | None) -> None:
@@ -113,13 +120,20 @@ class DPTModule(L.LightningModule):
             raise NrtError(f"init.ea_ckpt='{ckpt}' is not a checkpoint file. Train stage 1 "
                            "first (nrt-train stage=ea scene=<same scene>) or pass "
                            "init.ea_ckpt=<path/to/last.ckpt>.")
-        field = load_ea_field(ckpt)
+        self._ea["field"] = load_ea_field(ckpt)
         res = self.sigma_t.shape[0]
+        self.sigma_t.copy_(self._ea_density(res).expand_as(self.sigma_t))
+        log.info("dpt starts from the EA density of %s at %d^3 cells", ckpt, res)
+
+    @torch.no_grad()
+    def _ea_density(self, res: int) -> torch.Tensor:
+        """The EA density (clamped like sigma_t) at the cell centres of res^3 cells,
+        (R, R, R, 1) on the parameters' device."""
+        field = self._ea["field"]
         pts = cell_centres(res, self.bbox.cpu()).reshape(-1, 3)
         dens = torch.cat([field.density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
-        self.sigma_t.copy_(dens.reshape(res, res, res, 1).expand_as(self.sigma_t).clamp(
-            0, self.hparams.max_sigma_t))
-        log.info("dpt starts from the EA density of %s at %d^3 cells", ckpt, res)
+        return dens.reshape(res, res, res, 1).clamp(0, self.hparams.max_sigma_t).to(
+            self.sigma_t.device)
 
     def configure_optimizers(self):
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
@@ -183,8 +197,12 @@ class DPTModule(L.LightningModule):
     @torch.no_grad()
     def _resize(self, res: int) -> None:
         """Trilinear, cell-centred resampling of every grid to res^3, and of Adam's moments
-        with it (a restart of the moments made each voxel jump by the full lr)."""
+        with it (a restart of the moments made each voxel jump by the full lr). With
+        ``ea_detail`` sigma_t also gets back the EA density's detail that the coarse grid
+        could not hold (EA at res^3 minus EA at the old resolution, upsampled): a doubling
+        without optimisation in between yields the EA density at res^3 itself."""
         opt = self.optimizers().optimizer
+        old = self.sigma_t.shape[0]
 
         def resample(t: torch.Tensor) -> torch.Tensor:
             vol = t.permute(3, 0, 1, 2).unsqueeze(0)
@@ -196,36 +214,52 @@ class DPTModule(L.LightningModule):
                 if torch.is_tensor(value) and value.shape == p.shape:
                     state[key] = resample(value)
             p.data = resample(p.data)
+        if self.hparams.ea_detail and "field" in self._ea:
+            detail = self._ea_density(res) - resample(self._ea_density(old))
+            self.sigma_t.data = (self.sigma_t.data + detail).clamp(0, self.hparams.max_sigma_t)
         log.info("dpt grids doubled to %d^3 at step %d", res, self.global_step)
 
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+    def image_loss(self, frame: int, seed: int) -> float:
+        """Render training view ``frame`` of the current grids with gradients (``spp``,
+        Mitsuba's ``seed``), compare it with its photo (MSE after the log1p tonemap) and
+        store the loss's gradient as the ``.grad`` of every grid (non-finite entries
+        zeroed). Returns the loss."""
         import drjit as dr
 
+        r = self.renderer()
+        r.set_camera(self._frames.c2w[frame].cpu().numpy())
+        self._push(grad=True)
+        ref = r.mi.TensorXf(np.ascontiguousarray(self._frames.images[frame].cpu().numpy()))
+        img = r.mi.render(r.scene, r.params, spp=int(self.hparams.spp), seed=int(seed))
+        loss = dr.mean(dr.square(dr.log(1 + dr.maximum(img, 0)) - dr.log(1 + ref)), axis=None)
+        dr.backward(loss)
+        self.nonfinite_grads = 0
+        for name, key in self._keys.items():
+            grad = np.asarray(dr.grad(r.params[key]), np.float32)
+            bad = ~np.isfinite(grad)
+            if bad.any():  # counted, then zeroed (NaN must never reach Adam's moments)
+                self.nonfinite_grads += int(bad.sum())
+                grad = np.where(bad, 0.0, grad).astype(np.float32)
+            param = self.grids()[name]
+            param.grad = torch.from_numpy(grad.reshape(param.shape)).to(param.device)
+        return float(np.asarray(loss).reshape(-1)[0])
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         res = self._resolution_now()
         if res != self.sigma_t.shape[0]:
             self._resize(res)
         start = time.perf_counter()
         gen = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + self.global_step)
         frame = int(torch.randint(len(self._frames), (1,), generator=gen))
-        r = self.renderer()
-        r.set_camera(self._frames.c2w[frame].numpy())
-        self._push(grad=True)
-        ref = r.mi.TensorXf(self._frames.images[frame].numpy())
-        img = r.mi.render(r.scene, r.params, spp=int(self.hparams.spp),
-                          seed=self.global_step)
-        loss = dr.mean(dr.square(dr.log(1 + dr.maximum(img, 0)) - dr.log(1 + ref)), axis=None)
-        dr.backward(loss)
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
-        for name, key in self._keys.items():
-            grad = np.nan_to_num(np.asarray(dr.grad(r.params[key]), np.float32))
-            self.grids()[name].grad = torch.from_numpy(grad.reshape(self.grids()[name].shape))
+        value = self.image_loss(frame, seed=self.global_step)
         opt.step()
         self._clamp()
-        value = float(np.asarray(loss).reshape(-1)[0])
         self.log("train/loss", value, prog_bar=True)
         self.log("time/step_render_s", time.perf_counter() - start)
         self.log("train/grid_resolution", float(res))
+        self.log("train/nonfinite_render_grads", float(self.nonfinite_grads))
         return torch.tensor(value)
 
     @torch.no_grad()
