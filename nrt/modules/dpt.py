@@ -11,11 +11,15 @@ replay backpropagation), not the differential ratio tracking of the paper's base
 - Each step renders one random training view at ``spp`` with gradients; the loss is the
   MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
   Dr.Jit; ``dr.backward`` gives the grid gradients, which become the ``.grad`` of torch
-  parameters, and torch's Adam steps. Values are clamped after each step:
-  ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
+  parameters (non-finite entries counted and zeroed), and torch's Adam steps. Values are
+  clamped after each step: ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
 - Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
   ``upsample_at`` of the run (of its steps, or of ``budget_s`` when that comes first)
-  until ``resolutions[-1]``; Adam's moments are resampled with them.
+  until ``resolutions[-1]``; Adam's moments are resampled with them. With ``ea_detail``
+  sigma_t also gets the EA density's detail of the finer grid added (what the coarser
+  grid could not hold): worth it when the first grid is too coarse for the medium (the
+  ``tiny`` preset's 8^3), not when the EA density's own fine detail is noisier than its
+  coarse shape (``cpu``: EA at 64^3 is further from the truth than EA at 16^3).
 - For ``phase=hg`` the single g is not optimised: ``phase_g``, or (null) the ground
   truth's sigma_s-weighted mean when the dataset has one (an oracle the method lacks),
   else 0. Isotropic scenes have no g.
@@ -54,7 +58,7 @@ class DPTModule(L.LightningModule):
                  upsample_at: list[float], spp: int = 8, val_spp: int = 32,
                  lr: float = 0.02, init_albedo: float = 0.8, max_sigma_t: float = 100.0,
                  phase_g: float | None = None, property_resolution: int | None = None,
-                 ea_detail: bool = True, seed: int = 0):
+                 ea_detail: bool = False, seed: int = 0):
         super().__init__()
         self.save_hyperparameters()
         self.automatic_optimization = False
@@ -76,6 +80,7 @@ class DPTModule(L.LightningModule):
         self._renderer = None
         self._frames = None
         self._fixed_g = 0.0
+        self._started = False  # grids set (from the EA density, or by a checkpoint)
         self._ea = {}  # the EA field (kept out of the module's parameters and checkpoints)
         self.nonfinite_grads = 0  # of the last image_loss, zeroed before Adam
 
@@ -92,9 +97,10 @@ class DPTModule(L.LightningModule):
         if dm is None:
             return
         self.bbox.copy_(dm.bbox)
-        self._init_from_ea(self.hparams.density["ea_ckpt"])  # a resume overwrites it later
+        if not self._started:  # a resume overwrites it later; a trained module keeps its grids
+            self._init_from_ea(self.hparams.density["ea_ckpt"])
         gt = dm.ground_truth
-        if self.effects["phase"] == "hg":
+        if self.effects["phase"] == "hg" and not self._started:
             if self.hparams.phase_g is not None:
                 self._fixed_g = float(self.hparams.phase_g)
             elif gt is not None:
@@ -104,6 +110,7 @@ class DPTModule(L.LightningModule):
                      "model.phase_g" if self.hparams.phase_g is not None else
                      "the ground truth's: an oracle" if gt is not None else "default")
         self.use_views(dm.train_data, dm.environment.radiance.cpu().numpy(), dm.val_data)
+        self._started = True
 
     def use_views(self, frames, envmap: np.ndarray, val_data=None) -> None:
         """The photos to fit (``images`` (N, H, W, 3), OpenGL ``c2w`` (N, 4, 4) and
@@ -114,13 +121,10 @@ class DPTModule(L.LightningModule):
 
     @torch.no_grad()
     def _init_from_ea(self, ckpt: str | None) -> None:
-        from nrt.modules.ea import load_ea_field
-
         if not ckpt or not Path(ckpt).is_file():
             raise NrtError(f"init.ea_ckpt='{ckpt}' is not a checkpoint file. Train stage 1 "
                            "first (nrt-train stage=ea scene=<same scene>) or pass "
                            "init.ea_ckpt=<path/to/last.ckpt>.")
-        self._ea["field"] = load_ea_field(ckpt)
         res = self.sigma_t.shape[0]
         self.sigma_t.copy_(self._ea_density(res).expand_as(self.sigma_t))
         log.info("dpt starts from the EA density of %s at %d^3 cells", ckpt, res)
@@ -129,6 +133,10 @@ class DPTModule(L.LightningModule):
     def _ea_density(self, res: int) -> torch.Tensor:
         """The EA density (clamped like sigma_t) at the cell centres of res^3 cells,
         (R, R, R, 1) on the parameters' device."""
+        from nrt.modules.ea import load_ea_field
+
+        if "field" not in self._ea:
+            self._ea["field"] = load_ea_field(self.hparams.density["ea_ckpt"])
         field = self._ea["field"]
         pts = cell_centres(res, self.bbox.cpu()).reshape(-1, 3)
         dens = torch.cat([field.density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
@@ -214,7 +222,7 @@ class DPTModule(L.LightningModule):
                 if torch.is_tensor(value) and value.shape == p.shape:
                     state[key] = resample(value)
             p.data = resample(p.data)
-        if self.hparams.ea_detail and "field" in self._ea:
+        if self.hparams.ea_detail:
             detail = self._ea_density(res) - resample(self._ea_density(old))
             self.sigma_t.data = (self.sigma_t.data + detail).clamp(0, self.hparams.max_sigma_t)
         log.info("dpt grids doubled to %d^3 at step %d", res, self.global_step)
@@ -287,13 +295,24 @@ class DPTModule(L.LightningModule):
         return resample_grids(arrays, resolution, self.bbox.cpu())
 
     # -------------------------------------------------------------- resume
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        checkpoint["dpt_fixed_g"] = self._fixed_g
+
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Resize the grids to the checkpoint's resolution before its state is loaded."""
+        """Resize the grids to the checkpoint's resolution before its state is loaded, and
+        restore the fixed g of a ``phase=hg`` scene."""
+        self._fixed_g = float(checkpoint.get("dpt_fixed_g", self._fixed_g))
+        self._started = True
         state = checkpoint.get("state_dict", {})
         with torch.no_grad():
             for name, p in self.grids().items():
                 if name in state and state[name].shape != p.shape:
                     p.data = torch.zeros_like(state[name])
+
+    def teardown(self, stage: str) -> None:
+        """Drop the Mitsuba scene (Dr.Jit 3.9 can fail to compile a kernel while older
+        scenes of the same plugins are still alive in the process)."""
+        self._renderer = None
 
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """``medium_grids.npz`` at ``property_resolution`` (default: the ground truth's,
