@@ -488,13 +488,17 @@ def test_hg_sampler_is_continuous_across_its_series_branch():
 @pytest.mark.parametrize("modulation", ["siren", "grid"])
 def test_medium_heads_follow_the_effects(chromatic, modulation):
     """isotropic: g is None and nothing g-shaped exists (no g parameter, modulation width
-    2C); hg: exactly one scalar g parameter, g identical at every point and equal to
-    ``G_MAX tanh(g_shared)``, width 2C; varying_hg: a g output channel (width 2C + 1),
-    g varies over points and stays within G_MAX. Grey scenes give (..., 1) sigmas."""
+    K); hg: exactly one scalar g parameter, g identical at every point and equal to
+    ``G_MAX tanh(g_shared)``, width K; varying_hg: a g output channel (width K + 1),
+    g varies over points and stays within G_MAX. K = 6 (a, s per RGB channel) for
+    chromatic scenes; grey ones have K = 4: one sigma_t channel (..., 1), the same in R, G
+    and B, and an RGB albedo that varies per channel (the model of the scene spec, of
+    Mitsuba's one-channel sigma_t grid and of stage=dpt)."""
     torch.manual_seed(50)
     c = 3 if chromatic else 1
+    k = 6 if chromatic else 4
     pts = uniform_box_points(300, SLAB)
-    for phase, width in (("isotropic", 2 * c), ("hg", 2 * c), ("varying_hg", 2 * c + 1)):
+    for phase, width in (("isotropic", k), ("hg", k), ("varying_hg", k + 1)):
         medium = NeuralMedium({"phase": phase, "chromatic": chromatic}, modulation=modulation,
                               siren={"hidden": 16, "layers": 2}, grid_resolution=5)
         medium.bbox.copy_(SLAB)
@@ -502,9 +506,14 @@ def test_medium_heads_follow_the_effects(chromatic, modulation):
             with torch.no_grad():
                 medium.modulation.values.normal_()
         props = medium(pts)
-        assert props.sigma_a.shape == props.sigma_s.shape == props.albedo.shape == (300, c)
+        assert props.sigma_a.shape == props.sigma_s.shape == props.albedo.shape == (300, 3)
+        assert props.sigma_t.shape == (300, c)
         assert (props.sigma_a > 0).all() and (props.sigma_s > 0).all()
         torch.testing.assert_close(props.albedo, props.sigma_s / props.sigma_t)
+        torch.testing.assert_close(props.sigma_a + props.sigma_s,
+                                   props.sigma_t.expand(300, 3))
+        if modulation == "grid":  # random values: the albedo differs between channels
+            assert (props.albedo[:, 0] - props.albedo[:, 2]).abs().max() > 0.1
         out_width = (medium.modulation.out.out_features if modulation == "siren"
                      else medium.modulation.values.shape[-1])
         assert out_width == width
@@ -523,6 +532,44 @@ def test_medium_heads_follow_the_effects(chromatic, modulation):
             assert medium.g_shared is None and not g_params
             assert props.g.shape == (300,) and props.g.std() > 1e-3
             assert props.g.abs().max() <= G_MAX
+
+
+def test_grey_media_have_one_extinction_channel_and_an_rgb_albedo():
+    """Grey extinction (``chromatic=false``) is one sigma_t channel with an RGB albedo.
+
+    GroundTruthMedium of a grey spec's grids holds, at the cell centres (where trilinear
+    lookups return the cells exactly), the very values Mitsuba renders
+    (:func:`mitsuba_properties`: sigma_t of channel 0, albedo sigma_s / sigma_t per channel),
+    so forward mode sees the coloured albedo, not red's for all three channels. A fresh
+    grey NeuralMedium starts at sigma_t = rho (the EA density) and albedo ``init_albedo``
+    in every channel, as the chromatic one does."""
+    from nrt.data.mitsuba_backend import mitsuba_properties
+    from nrt.physics.volume import cell_centres
+
+    gen = torch.Generator().manual_seed(51)
+    r = 4
+    sigma_t = 0.2 + 3 * torch.rand(r, r, r, 1, generator=gen)
+    albedo = torch.rand(r, r, r, 3, generator=gen)
+    albedo[0, 0, 0] = torch.tensor([0.9, 0.5, 0.1])
+    sigma_t[1, 2, 3] = 0.0  # an empty cell: albedo 0 there, as Mitsuba's grid has it
+    grids = {"sigma_a": sigma_t * (1 - albedo), "sigma_s": sigma_t * albedo,
+             "g": torch.zeros(r, r, r)}
+    effects = {"phase": "isotropic", "chromatic": False}
+    medium = GroundTruthMedium(effects, grids["sigma_a"], grids["sigma_s"], grids["g"], SLAB)
+    props = medium(cell_centres(r, SLAB).double())
+    ref = mitsuba_properties({k: v.numpy() for k, v in grids.items()}, effects)
+    assert props.sigma_t.shape == (r, r, r, 1) and props.albedo.shape == (r, r, r, 3)
+    torch.testing.assert_close(props.sigma_t, torch.as_tensor(ref["sigma_t"]).double())
+    torch.testing.assert_close(props.albedo, torch.as_tensor(ref["albedo"]).double())
+    assert props.albedo[0, 0, 0].tolist() == pytest.approx([0.9, 0.5, 0.1], abs=1e-6)
+    torch.testing.assert_close(props.sigma_s, grids["sigma_s"].double(), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(props.sigma_a, grids["sigma_a"].double(), rtol=1e-5, atol=1e-6)
+
+    fresh = NeuralMedium({"phase": "hg", "chromatic": False}, modulation="grid",
+                         grid_resolution=3, init_albedo=0.7)
+    start = fresh(uniform_box_points(50, CUBE))
+    torch.testing.assert_close(start.sigma_t, torch.ones(50, 1))
+    torch.testing.assert_close(start.albedo, torch.full((50, 3), 0.7))
 
 
 @pytest.mark.parametrize("fill", [1e6, -1e6, 1e30])

@@ -100,10 +100,19 @@ def unit_cube_to_box(mi, bbox: np.ndarray):
 def mitsuba_properties(grids: dict, effects: dict) -> dict[str, np.ndarray]:
     """Mitsuba's parameters of property grids (``[z, y, x]`` arrays): ``sigma_t`` (one
     channel unless chromatic), ``albedo`` (3 channels), and for the phase ``g``: the grid
-    (R, R, R, 1) when g varies, the sigma_s-weighted mean (a float) for one shared g."""
+    (R, R, R, 1) when g varies, the sigma_s-weighted mean (a float) for one shared g.
+
+    Grey extinction is one sigma_t channel with an RGB albedo (the scene spec, nrt's media
+    and stage=dpt share this model); grids whose sigma_a + sigma_s differs between
+    channels are not grey, and only channel 0's extinction is rendered (a warning says so)."""
     sigma_s = np.asarray(grids["sigma_s"], np.float32)
     sigma_t = np.asarray(grids["sigma_a"], np.float32) + sigma_s
     albedo = np.where(sigma_t > 0, sigma_s / np.maximum(sigma_t, 1e-30), 0.0).astype(np.float32)
+    spread = float(np.ptp(sigma_t, -1).max()) if sigma_t.size else 0.0
+    if not effects["chromatic"] and spread > 1e-4 * max(float(sigma_t.max()), 1e-30):
+        log.warning("The scene's extinction is grey (effects.chromatic=false) but these grids' "
+                    "sigma_a + sigma_s differ between R, G and B (by up to %.3g): Mitsuba "
+                    "renders channel 0's sigma_t with each channel's albedo.", spread)
     out = {"sigma_t": sigma_t if effects["chromatic"] else sigma_t[..., :1], "albedo": albedo}
     g = np.asarray(grids["g"], np.float32)
     if effects["phase"] == "varying_hg":

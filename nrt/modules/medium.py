@@ -2,15 +2,20 @@
 
 Heads follow the scene's declared effects (DESIGN.md "simulate only what a scene calls
 for"): ``phase=isotropic`` has no g at all, ``phase=hg`` one shared learnable g,
-``phase=varying_hg`` a g field; ``chromatic=false`` gives one grey channel that broadcasts
-over RGB. Units: sigma per unit world length; g in [-G_MAX, G_MAX].
+``phase=varying_hg`` a g field. Extinction is RGB, or with ``chromatic=false`` grey: one
+sigma_t channel with an RGB albedo, as the scene spec draws it, Mitsuba renders it (a
+one-channel ``sigma_t`` grid, a three-channel ``albedo``) and ``stage=dpt`` fits it.
+Units: sigma per unit world length; g in [-G_MAX, G_MAX].
 
-- :class:`NeuralMedium`: ``sigma_a = rho(x) exp(a(x))``, ``sigma_s = rho(x) exp(s(x))``,
+- :class:`NeuralMedium`: chromatic: ``sigma_a = rho(x) exp(a(x))``, ``sigma_s = rho(x)
+  exp(s(x))`` per channel, ``albedo = sigmoid(s - a)`` (exact without dividing by a small
+  sigma_t); grey: ``sigma_t = rho(x) exp(t(x))`` (one channel), ``albedo = sigmoid(b(x))``
+  (RGB), ``sigma_s = sigma_t albedo``, ``sigma_a = sigma_t (1 - albedo)``. Both:
   ``g = G_MAX tanh(h(x))``, with ``rho`` the EA density (or 1 without a first stage) and
-  ``(a, s, h)`` from a SIREN or, for the paper's ablation, a trilinear grid.
-  Exponents are clamped so exp never overflows; ``albedo = sigmoid(s - a)`` is exact
-  without dividing by a small sigma_t.
-- :class:`GroundTruthMedium`: the dataset's grids (forward mode, tests).
+  the exponents and logits from a SIREN or, for the paper's ablation, a trilinear grid.
+  Exponents are clamped so exp never overflows.
+- :class:`GroundTruthMedium`: the dataset's grids (forward mode, tests); a grey one reads
+  them as Mitsuba does: trilinear sigma_t (channel 0) and trilinear albedo.
 """
 
 from __future__ import annotations
@@ -34,22 +39,25 @@ EXPONENT_RANGE = (-15.0, 10.0)
 
 @dataclass
 class MediumProperties:
-    """Optical properties at a batch of points: ``sigma_a``, ``sigma_s`` (..., C) with C = 3
-    (chromatic) or 1 (grey, broadcasts over RGB), ``albedo`` = sigma_s / sigma_t (..., C)
-    and ``g`` (...,) or None for an isotropic phase."""
+    """Optical properties at a batch of points: ``sigma_a``, ``sigma_s``, ``albedo`` =
+    sigma_s / sigma_t (..., 3), ``g`` (...,) or None for an isotropic phase, and for grey
+    media ``extinction``, the one sigma_t channel (..., 1) that broadcasts over RGB."""
 
     sigma_a: torch.Tensor
     sigma_s: torch.Tensor
     albedo: torch.Tensor
     g: torch.Tensor | None
+    extinction: torch.Tensor | None = None
 
     @property
     def sigma_t(self) -> torch.Tensor:
-        return self.sigma_a + self.sigma_s
+        """(..., 3), or (..., 1) for grey media."""
+        return self.extinction if self.extinction is not None else self.sigma_a + self.sigma_s
 
 
 def scene_channels(effects: dict) -> int:
-    """Colour channels of the medium: 3 for chromatic scenes, 1 for grey ones."""
+    """Channels of the extinction: 3 for chromatic scenes, 1 for grey ones (the albedo
+    always has 3)."""
     return 3 if effects.get("chromatic", True) else 1
 
 
@@ -94,7 +102,9 @@ class NeuralMedium(Medium):
         if not 0.0 < init_albedo < 1.0:
             raise ValueError(f"model.medium.init_albedo must lie in (0, 1), got {init_albedo}")
         self.density_field = density
-        n_out = 2 * self.channels + (self.phase == "field")
+        # chromatic: a (3), s (3); grey: t (1), albedo logits b (3); then h (g field)
+        self.g_index = 6 if self.channels == 3 else 4
+        n_out = self.g_index + (self.phase == "field")
         if modulation == "siren":
             self.modulation: nn.Module = Siren(3, n_out, **(siren or {}))
         elif modulation == "grid":
@@ -103,8 +113,11 @@ class NeuralMedium(Medium):
             raise ValueError(f"model.medium.modulation must be 'siren' or 'grid', got "
                              f"'{modulation}'")
         self.g_shared = nn.Parameter(torch.zeros(())) if self.phase == "shared" else None
-        offsets = [math.log(1 - init_albedo)] * self.channels + [math.log(init_albedo)] * \
-            self.channels + [0.0] * (self.phase == "field")
+        # start: sigma_t = rho, albedo = init_albedo (a, s: exp(a) + exp(s) = 1)
+        offsets = ([math.log(1 - init_albedo)] * 3 + [math.log(init_albedo)] * 3
+                   if self.channels == 3 else
+                   [0.0] + [math.log(init_albedo / (1 - init_albedo))] * 3)
+        offsets += [0.0] * (self.phase == "field")
         self.register_buffer("offsets", torch.tensor(offsets))
 
     def rho(self, x: torch.Tensor) -> torch.Tensor:
@@ -116,15 +129,19 @@ class NeuralMedium(Medium):
     def forward(self, x: torch.Tensor) -> MediumProperties:
         unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
         h = self.modulation(unit) + self.offsets
-        c = self.channels
-        a, s = h[..., :c].clamp(*EXPONENT_RANGE), h[..., c:2 * c].clamp(*EXPONENT_RANGE)
         rho = self.rho(x).unsqueeze(-1)
         if self.phase == "field":
-            g = G_MAX * torch.tanh(h[..., 2 * c])
+            g = G_MAX * torch.tanh(h[..., self.g_index])
         elif self.phase == "shared":
             g = (G_MAX * torch.tanh(self.g_shared)).expand(x.shape[:-1])
         else:
             g = None
+        if self.channels == 1:
+            sigma_t = rho * torch.exp(h[..., :1].clamp(*EXPONENT_RANGE))
+            b = h[..., 1:4]
+            return MediumProperties(sigma_t * torch.sigmoid(-b), sigma_t * torch.sigmoid(b),
+                                    torch.sigmoid(b), g, extinction=sigma_t)
+        a, s = h[..., :3].clamp(*EXPONENT_RANGE), h[..., 3:6].clamp(*EXPONENT_RANGE)
         return MediumProperties(rho * torch.exp(a), rho * torch.exp(s), torch.sigmoid(s - a), g)
 
 
@@ -142,22 +159,33 @@ class _GridModulation(nn.Module):
 
 class GroundTruthMedium(Medium):
     """Trilinear lookups of ground-truth grids: ``sigma_a``, ``sigma_s`` (Nz, Ny, Nx, 3) and
-    ``g`` (Nz, Ny, Nx), in the box ``bbox`` (2, 3). Nothing here is trained."""
+    ``g`` (Nz, Ny, Nx), in the box ``bbox`` (2, 3). Nothing here is trained.
+
+    Chromatic media interpolate sigma_a and sigma_s; grey ones interpolate what Mitsuba's
+    grids hold (:func:`nrt.data.mitsuba_backend.mitsuba_properties`): sigma_t of channel 0
+    and the RGB albedo sigma_s / sigma_t (0 where sigma_t is 0)."""
 
     def __init__(self, effects: dict, sigma_a: torch.Tensor, sigma_s: torch.Tensor,
                  g: torch.Tensor, bbox: torch.Tensor):
         super().__init__(effects)
-        c = self.channels
-        stacked = torch.cat((sigma_a[..., :c], sigma_s[..., :c], g.unsqueeze(-1)), -1)
+        if self.channels == 1:
+            sigma_t = sigma_a + sigma_s
+            sigma_a, sigma_s = sigma_t[..., :1], _albedo(sigma_s, sigma_t)  # slots: sigma_t, albedo
+        stacked = torch.cat((sigma_a, sigma_s, g.unsqueeze(-1)), -1)
         self.register_buffer("stacked", stacked.float(), persistent=False)
         self.bbox.copy_(bbox)
 
     def forward(self, x: torch.Tensor) -> MediumProperties:
         v = sample_grid(self.stacked, x, self.bbox)
-        c = self.channels
-        sigma_a, sigma_s = v[..., :c].clamp_min(0.0), v[..., c:2 * c].clamp_min(0.0)
-        sigma_t = sigma_a + sigma_s
-        albedo = torch.where(sigma_t > 0, sigma_s / sigma_t.clamp_min(1e-30),
-                             torch.zeros_like(sigma_t))
-        g = v[..., 2 * c].clamp(-G_MAX, G_MAX) if self.phase != "none" else None
-        return MediumProperties(sigma_a, sigma_s, albedo, g)
+        g = v[..., -1].clamp(-G_MAX, G_MAX) if self.phase != "none" else None
+        if self.channels == 1:
+            sigma_t, albedo = v[..., :1].clamp_min(0.0), v[..., 1:4].clamp(0.0, 1.0)
+            return MediumProperties(sigma_t * (1 - albedo), sigma_t * albedo, albedo, g,
+                                    extinction=sigma_t)
+        sigma_a, sigma_s = v[..., :3].clamp_min(0.0), v[..., 3:6].clamp_min(0.0)
+        return MediumProperties(sigma_a, sigma_s, _albedo(sigma_s, sigma_a + sigma_s), g)
+
+
+def _albedo(sigma_s: torch.Tensor, sigma_t: torch.Tensor) -> torch.Tensor:
+    """``sigma_s / sigma_t``, 0 where sigma_t is 0."""
+    return torch.where(sigma_t > 0, sigma_s / sigma_t.clamp_min(1e-30), torch.zeros_like(sigma_t))
