@@ -61,17 +61,24 @@ def test_rte_after_ea_via_cli(tiny_ea_run, tiny_dataset):
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
 
 
-def test_rte_without_ea_run_is_a_clear_error(tmp_path, tiny_dataset):
-    proc = run_train(tmp_path, tiny_dataset.parent, stage="rte")
-    assert proc.returncode == 2
-    assert "nrt: error: stage=rte starts from the EA density" in proc.stderr
-    assert "init=none" in proc.stderr and "Traceback" not in proc.stderr
-
-
-def test_rte_refuses_truncated_scattering_orders(tmp_path, tiny_dataset):
-    proc = run_train(tmp_path, tiny_dataset.parent, "init=none",
-                     "scene.effects.max_scattering_order=1", stage="rte")
-    assert proc.returncode == 2 and "max_scattering_order=1" in proc.stderr
+@pytest.mark.parametrize(("stage", "overrides", "needle"), [
+    ("rte", (), "stage=rte starts from the EA density"),
+    ("dpt", (), "stage=dpt starts from the EA density"),
+    ("rte", ("init=none", "scene.effects.max_scattering_order=1"), "max_scattering_order=1"),
+    ("forward", ("scene.effects.max_scattering_order=0",), "max_scattering_order=0"),
+])
+def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, needle):
+    """What the config alone decides (no EA run to start from; stage 2 on photos of
+    truncated transport) is refused with ``nrt: error:`` and exit status 2 before the
+    dataset is rendered or loaded: the data folder (empty here, so the scene would have
+    to be rendered first) stays untouched."""
+    data_root = tmp_path / "datasets"
+    proc = run_train(tmp_path / "out", data_root, *overrides, stage=stage)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert f"nrt: error: {needle}" in proc.stderr or (
+        "nrt: error:" in proc.stderr and needle in proc.stderr), proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    assert not data_root.exists(), list(data_root.rglob("*"))
 
 
 # ------------------------------------------------------------------ in-process helpers

@@ -1,7 +1,8 @@
 """``nrt-train``: train one stage on a scene (rendering its dataset first when missing).
 
-Short and linear, in the lightning-hydra-template manner: compose, seed, data, model,
-callbacks, loggers, trainer, fit (resuming when asked), export. Lightning, torch and
+Short and linear, in the lightning-hydra-template manner: compose, seed, model (so that
+what the config alone decides is refused before any rendering), data, callbacks,
+loggers, trainer, fit (resuming when asked), export. Lightning, torch and
 Mitsuba are imported inside the task, so ``--cfg``, ``--help`` and config errors answer
 at once.
 """
@@ -60,6 +61,12 @@ def train_task(cfg: DictConfig) -> dict:
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     L.seed_everything(cfg.seed, workers=True)
+    # What the config alone decides is refused before any rendering or data loading: a
+    # missing EA run or resume checkpoint, and the model's own checks (e.g. stage 2 on
+    # truncated scattering orders).
+    resolve_ea_checkpoint(cfg)
+    ckpt = resume_checkpoint(cfg, run_dir)
+    model = hydra.utils.instantiate(cfg.model, _convert_="all")
     dataset_dir = ensure_dataset(OmegaConf.to_container(cfg.scene, resolve=True),
                                  cfg.paths.data_dir, variant=cfg.render.variant,
                                  progress=cfg.render.progress)
@@ -68,12 +75,9 @@ def train_task(cfg: DictConfig) -> dict:
     write_run_info(run_dir, stage=cfg.stage.name, scene=cfg.scene.name,
                    dataset_dir=str(Path(dataset_dir).resolve()),
                    environments=datamodule.train_data.environments_used())
-    resolve_ea_checkpoint(cfg)
-    model = hydra.utils.instantiate(cfg.model, _convert_="all")
     callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
     loggers = [hydra.utils.instantiate(lg) for lg in cfg.logger.values()]
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers)
-    ckpt = resume_checkpoint(cfg, run_dir)
     log.info("Run folder %s; dataset %s%s", run_dir, dataset_dir,
              f"; resuming from {ckpt}" if ckpt else "")
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
