@@ -22,33 +22,48 @@ from nrt.errors import NrtError
 log = logging.getLogger(__name__)
 
 
-def load_medium(cfg: DictConfig) -> dict:
-    """What to evaluate: grids, effects, dataset folder, trained environments, source."""
-    from nrt.data.grids import load_property_grids
-    from nrt.data.render import ensure_dataset
-    from nrt.evaluation.runs import open_run, run_grids
+def check_inputs(cfg: DictConfig) -> dict:
+    """What to evaluate, checked cheaply before any metric network or render is set up:
+    the run folder (or the grid file and the scene's keys)."""
+    from nrt.evaluation.runs import open_run
 
     if cfg.run and cfg.grids:
         raise NrtError("Give either run=<run folder> or grids=<file.npz>, not both.")
     if cfg.run:
-        run = open_run(cfg.run)
-        grids, source = run_grids(run, cfg.export.resolution, str(cfg.checkpoint))
-        return {"grids": grids, "effects": run.effects, "dataset_dir": run.dataset_dir,
-                "trained": run.trained_envs, "source": source, "stage": run.stage}
+        return {"run": open_run(cfg.run)}
     if cfg.grids:
+        from nrt.data.spec import resolve_scene
+
         path = Path(str(cfg.grids)).expanduser()
         if not path.is_file():
             raise NrtError(f"grids='{path}' is not a file. Pass a property-grid .npz "
                            "(sigma_a, sigma_s, g; README \"Data format\").")
         scene = OmegaConf.to_container(cfg.scene, resolve=True)
-        dataset_dir = ensure_dataset(scene, cfg.paths.data_dir, variant=cfg.render.variant,
-                                     progress=cfg.render.progress)
-        return {"grids": load_property_grids(path), "effects": scene["effects"],
-                "dataset_dir": dataset_dir, "trained": [], "source": str(path),
-                "stage": "grids"}
+        if not scene.get("path"):
+            resolve_scene(scene)  # the scene's keys, before a dataset is rendered
+        return {"grids": path, "scene": scene}
     raise NrtError("nrt-eval needs run=<run folder of nrt-train> (e.g. "
                    "outputs/default/rte/<timestamp>-<pid>) or grids=<property-grid .npz> "
                    "with scene=<name>.")
+
+
+def load_medium(cfg: DictConfig, inputs: dict) -> dict:
+    """The medium of :func:`check_inputs`: grids, effects, dataset folder (rendered when
+    missing), trained environments, source."""
+    from nrt.data.grids import load_property_grids
+    from nrt.data.render import ensure_dataset
+    from nrt.evaluation.runs import run_grids
+
+    if "run" in inputs:
+        run = inputs["run"]
+        grids, source = run_grids(run, cfg.export.resolution, str(cfg.checkpoint))
+        return {"grids": grids, "effects": run.effects, "dataset_dir": run.dataset_dir,
+                "trained": run.trained_envs, "source": source, "stage": run.stage}
+    scene, path = inputs["scene"], inputs["grids"]
+    dataset_dir = ensure_dataset(scene, cfg.paths.data_dir, variant=cfg.render.variant,
+                                 progress=cfg.render.progress)
+    return {"grids": load_property_grids(path), "effects": scene["effects"],
+            "dataset_dir": dataset_dir, "trained": [], "source": str(path), "stage": "grids"}
 
 
 def markdown(metrics: dict[str, float], frames: list[dict], title: str) -> str:
@@ -75,8 +90,12 @@ def eval_task(cfg: DictConfig) -> dict:
     from nrt.metrics import LPIPS
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    lpips = LPIPS(str(cfg.metrics.lpips_net)) if cfg.metrics.lpips else None  # fail early
-    medium = load_medium(cfg)
+    inputs = check_inputs(cfg)
+    try:  # before any render: a missing network fails in seconds
+        lpips = LPIPS(str(cfg.metrics.lpips_net)) if cfg.metrics.lpips else None
+    except NrtError as exc:
+        raise NrtError(f"{exc} Or skip LPIPS with metrics.lpips=false.") from None
+    medium = load_medium(cfg, inputs)
     data = load_dataset(medium["dataset_dir"], "test")
     grids = medium["grids"]
     bbox = grids.get("bbox", data.bbox)

@@ -61,6 +61,9 @@ def write_run_info(run_dir: str | Path, **info) -> None:
 
 def eval_dir(run, output_dir: str) -> str:
     """Resolver ``${nrt_eval_dir:run,output_dir}``: ``<run>/eval/<timestamp>-<pid>`` for a
-    run, else ``<output_dir>/eval/<timestamp>-<pid>``; never an existing folder."""
-    base = Path(str(run)) / "eval" if run not in (None, "", "None") else Path(output_dir) / "eval"
+    run folder, else ``<output_dir>/eval/<timestamp>-<pid>`` (also for a run folder that
+    does not exist, which nrt-eval then reports without creating it); never an existing
+    folder."""
+    given = run not in (None, "", "None") and Path(str(run)).expanduser().is_dir()
+    base = Path(str(run)).expanduser() / "eval" if given else Path(output_dir) / "eval"
     return _chosen.setdefault(("eval", str(base)), new_run_dir(base))

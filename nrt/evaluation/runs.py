@@ -36,6 +36,10 @@ class TrainedRun:
 def open_run(path: str | Path) -> TrainedRun:
     """Read a run folder of ``nrt-train``; errors name what is missing and the fix."""
     path = Path(path).expanduser()
+    if not path.is_dir():
+        raise NrtError(f"run='{path}' does not exist (or is not a folder). Pass a run folder "
+                       "of nrt-train such as outputs/<scene>/<stage>/<timestamp>-<pid> (or "
+                       "grids=<file.npz> with scene=<name> to evaluate a property-grid file).")
     info_file, cfg_file = path / RUN_FILE, path / ".hydra" / "config.yaml"
     if not info_file.is_file() or not cfg_file.is_file():
         raise NrtError(f"run='{path}' is not a run folder of nrt-train: it needs {RUN_FILE} "
