@@ -193,3 +193,18 @@ def test_conversion_from_the_fetched_packages_passes_its_checks(tmp_path):
     assert weights.up_to_date(tmp_path)
     assert not weights.ensure_weights(tmp_path).changed
     assert Path(result.root) == tmp_path
+
+
+@needs_weights
+def test_the_held_out_callback_logs_real_lpips():
+    from nrt.callbacks import HeldOutImageMetrics
+
+    logged = {}
+    module = type("Module", (), {"log": lambda self, k, v, batch_size: logged.update({k: v})})()
+    callback = HeldOutImageMetrics(lpips=True)
+    callback.setup(None, module, "fit")
+    a, b = weights.reference_pairs()
+    pred, ref = (torch.expm1(x[4].permute(1, 2, 0) * 3) for x in (b, a))
+    callback.on_validation_batch_end(None, module, {"image": pred, "reference": ref}, None, 0)
+    assert set(logged) == {"val/psnr", "val/ssim", "val/lpips"}
+    assert 0.05 < float(logged["val/lpips"]) < 1.0
