@@ -18,7 +18,9 @@ error does to them.
 
 from __future__ import annotations
 
+import functools
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -421,18 +423,27 @@ def single_scatter_reference(grids: dict, bbox, sun: np.ndarray, irradiance: np.
     return fn
 
 
-@pytest.mark.parametrize("g", [0.5, -0.5])
-def test_single_scattering_pins_hg_sign(mi, g):
-    """Thin homogeneous box (sigma_s = 0.3, sigma_a = 0.05) lit by a sun whose light travels
-    at 40 degrees from the direction to the camera (cos = 0.77), black sky, order 1: Mitsuba
-    (built-in ``hg`` with the spec's g) equals nrt's single-scatter integral with
-    ``hg_phase(g)``. HG(+0.5) and HG(-0.5) differ 13x at this angle.
+@dataclass(frozen=True)
+class SingleScatteringCase:
+    """Mitsuba's two renders of the single-scattering scene and what describes it."""
 
-    Measured (64 spp): |z| < 0.2, ratios 1.07-1.10; over 15 seed pairs |z| < 1.4, ratios
-    < 1.14; a 20-seed average agreed with the reference to 0.04%. With the opposite sign the
-    same renders give |z| = 155 (g = 0.5) and 1485 (g = -0.5), ratios 48 and 4300
-    (asserted below).
-    """
+    a: np.ndarray
+    b: np.ndarray
+    spec: dict
+    grids: dict
+    sun: np.ndarray  # direction of travel of sunlight
+    irradiance: np.ndarray
+    c2w: np.ndarray
+    intr: Intrinsics
+
+
+@functools.cache
+def single_scattering_case(g: float) -> SingleScatteringCase:
+    """Thin homogeneous box (sigma_s = 0.3, sigma_a = 0.05, grey), HG g, lit by a sun whose
+    light travels at 40 degrees from the direction to the camera (cos = 0.77), black sky,
+    order 1 (``max_depth = 2``), rendered by Mitsuba at 64 spp with seeds 1 and 2 (once per
+    session: tests of other modules reuse the renders)."""
+    mi = mitsuba_backend.select_variant()
     width = height = 32
     fov = 45.0
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
@@ -445,12 +456,30 @@ def test_single_scattering_pins_hg_sign(mi, g):
     scene["sun"] = {"type": "directional", "direction": sun.tolist(),
                     "irradiance": {"type": "rgb", "value": irradiance.tolist()}}
     a, b = render_pair(mi, scene, c2w, 64)
-    ref = footprint_average(single_scatter_reference(grids, spec["bbox"], sun, irradiance, g),
-                            c2w, intr, 4, chunk=4)
+    return SingleScatteringCase(a, b, spec, grids, sun, irradiance, c2w, intr)
+
+
+@pytest.mark.parametrize("g", [0.5, -0.5])
+def test_single_scattering_pins_hg_sign(mi, g):
+    """:func:`single_scattering_case`: Mitsuba (built-in ``hg`` with the spec's g) equals
+    nrt's single-scatter integral with ``hg_phase(g)``. HG(+0.5) and HG(-0.5) differ 13x
+    at this angle.
+
+    Measured (64 spp): |z| < 0.2, ratios 1.07-1.10; over 15 seed pairs |z| < 1.4, ratios
+    < 1.14; a 20-seed average agreed with the reference to 0.04%. With the opposite sign the
+    same renders give |z| = 155 (g = 0.5) and 1485 (g = -0.5), ratios 48 and 4300
+    (asserted below).
+    """
+    case = single_scattering_case(g)
+    a, b, bbox = case.a, case.b, case.spec["bbox"]
+    ref = footprint_average(single_scatter_reference(case.grids, bbox, case.sun,
+                                                     case.irradiance, g),
+                            case.c2w, case.intr, 4, chunk=4)
     # atol: pixels that miss the box are exactly 0 in both
     check(compare(a, b, ref, atol=1e-7), f"single scattering, g = {g}")
-    flipped = footprint_average(single_scatter_reference(grids, spec["bbox"], sun, irradiance,
-                                                         -g), c2w, intr, 2, chunk=4)
+    flipped = footprint_average(single_scatter_reference(case.grids, bbox, case.sun,
+                                                         case.irradiance, -g),
+                                case.c2w, case.intr, 2, chunk=4)
     wrong = compare(a, b, flipped, atol=1e-7)
     assert np.all(np.abs(wrong.z) > 50) and np.all(wrong.ratio > 20), wrong.describe()
 

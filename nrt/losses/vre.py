@@ -25,8 +25,10 @@ def vre_render(light: LightField, medium: Medium, origins: torch.Tensor, dirs: t
                detach_inscatter: bool = False, direct_source: DirectSource | None = None,
                estimates: int = 1) -> list[torch.Tensor]:
     """Pixels ``I`` (R, 3) of view rays (``origins``, unit ``dirs`` v, ``background``
-    E(v)), one per independent in-scattering estimate; the first of several carries no
-    graph (the value of :func:`~nrt.losses.unbiased.unbiased_square`)."""
+    E(v)), one per in-scattering estimate; the first of several carries no graph (the
+    value of :func:`~nrt.losses.unbiased.unbiased_square`). The estimates draw independent
+    in-scattering directions and share everything else: the jittered positions, the
+    medium and the known lights' first scattering there."""
     t0, t1, hit = ray_box_intersect(origins, dirs, medium.bbox)
     outs = [background.clone() for _ in range(estimates)]
     if not hit.any():
@@ -53,8 +55,21 @@ def vre_loss(light: LightField, medium: Medium, origins: torch.Tensor, dirs: tor
              pixels: torch.Tensor, background: torch.Tensor, n_samples: int, n_dirs: int,
              detach_inscatter: bool = False, direct_source: DirectSource | None = None
              ) -> torch.Tensor:
-    """Unbiased mean squared error (units of radiance_scale) of the rendered against the
-    photographed ``pixels`` over the rays that cross the box (0 when none does)."""
+    """Mean squared error (units of radiance_scale) of the rendered against the
+    photographed ``pixels`` over the rays that cross the box (0 when none does), made
+    unbiased with respect to the in-scattering directions only.
+
+    Two estimates with independent directions and shared jittered positions ``t`` enter
+    :func:`~nrt.losses.unbiased.unbiased_square`, so the value is unbiased for
+    ``E_t[(E[I | t] - P)^2] = (E[I] - P)^2 + Var_t(E[I | t])`` and the gradient for its
+    gradient: the directions' variance is gone, the positions' is not (nor a covariance of
+    the positions in the gradient). Measured on a medium varying 40x across the box
+    (tests/test_vre.py): the positions' variance is 7% of one render's variance (the bias
+    of a plain square) with 1 stratum per ray, 4% with 4, 0.7% with 16 and 0.3% (within
+    noise) with 32; the presets use 16-32. Independent positions too (the medium and the
+    lights' first scattering evaluated twice) made this objective 1.3x (cpu preset) to
+    1.9x (tiny) slower, measured. ``E[I]`` itself is the alpha-composited quadrature of the
+    VRE, whose error shrinks with ``n_samples``."""
     _, _, hit = ray_box_intersect(origins, dirs, medium.bbox)
     if not hit.any():
         return origins.new_zeros(())
