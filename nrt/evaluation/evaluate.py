@@ -9,9 +9,12 @@
 3. Relighting: the medium (and the truth, when known) under an environment plus extra
    local lights, as EXR and PNG.
 
-Metric names: ``mse_<property>_x100``; ``<metric>_<group>`` with group ``novel`` (frames
-under environments the run did not train on), ``seen`` (its training environment),
-``env_<name>``; ``*_noise_floor_*`` for the true medium; ``*_relit`` for relighting.
+Metric names: ``mse_<property>_x100``; ``<metric>_<group>`` with group ``seen`` (frames
+under the environments the medium was fitted under: a run's training environments; for a
+property-grid file, whose training is unknown, the dataset's first environment, which
+stages rte, dpt and forward train on by default), ``novel`` (under the others; absent when
+the dataset has a single environment), ``env_<name>``; ``*_noise_floor_*`` for the true
+medium; ``*_relit`` for relighting.
 """
 
 from __future__ import annotations
@@ -62,6 +65,19 @@ def property_metrics(grids: Mapping, truth: Mapping, bbox: torch.Tensor,
     return {f"mse_{k}_x100": float(v) for k, v in property_mse(learned, truth, with_g).items()}
 
 
+def seen_environments(data: SceneDataset, trained: list[str]) -> list[str]:
+    """The environments whose illumination the medium has seen: ``trained`` (a run's), or,
+    when unknown (a property-grid file: ``trained`` empty), the dataset's first one, the
+    one stages rte, dpt and forward train on by default (``stage.environments: [0]``).
+    With a single environment, every frame is under seen illumination."""
+    if trained:
+        return list(trained)
+    log.info("The medium's training environments are unknown (a property-grid file): "
+             "counting '%s', the one stages rte, dpt and forward train on by default, as "
+             "seen; the others as novel.", data.env_names[0])
+    return list(data.env_names[:1])
+
+
 def choose_environments(data: SceneDataset, wanted, trained: list[str]) -> list[str]:
     """Environment names to re-render under: ``novel`` (those the run did not train on;
     the trained ones if the dataset has no other), ``all``, or a list of names."""
@@ -91,7 +107,9 @@ def _mean(rows: list[dict], key: str) -> float:
 
 def rerender_metrics(grids: Mapping, effects: dict, data: SceneDataset, trained: list[str],
                      settings: Mapping, lpips: LPIPS | None, result: Evaluation) -> None:
-    """Re-render the held-out frames of the chosen environments; compare with the photos."""
+    """Re-render the held-out frames of the chosen environments; compare with the photos.
+    Frames under :func:`seen_environments` give the ``seen`` metrics, the others ``novel``."""
+    trained = seen_environments(data, trained)
     envs = choose_environments(data, settings.get("environments", "novel"), trained)
     frames = [i for i in range(len(data)) if data.env_names[int(data.env_index[i])] in envs]
     if settings.get("max_views"):
