@@ -47,6 +47,24 @@ def test_grey_extinction_builds_one_channel(mi, chromatic, channels):
     assert medium["albedo"]["grid"].channel_count() == 3
 
 
+def test_grey_scene_warns_about_grids_that_are_not_grey(caplog):
+    """Grey extinction is one sigma_t with an RGB albedo: grey grids (sigma_a + sigma_s
+    equal in R, G, B, coloured albedo) pass silently; grids whose extinction differs
+    between channels get a warning that only channel 0's sigma_t is rendered."""
+    g = grids()
+    t = g["sigma_a"][..., :1] + g["sigma_s"][..., :1]
+    albedo = np.array([0.9, 0.5, 0.2], np.float32)
+    grey = {"sigma_a": t * (1 - albedo), "sigma_s": t * albedo, "g": g["g"]}
+    effects = spec(chromatic=False)["effects"]
+    with caplog.at_level("WARNING", logger="nrt.data.mitsuba_backend"):
+        props = mitsuba_backend.mitsuba_properties(grey, effects)
+    assert not caplog.records
+    np.testing.assert_allclose(props["albedo"][t[..., 0] > 0], np.broadcast_to(
+        albedo, props["albedo"][t[..., 0] > 0].shape), rtol=1e-5)
+    mitsuba_backend.mitsuba_properties(g, effects)
+    assert "channel 0" in caplog.text
+
+
 @pytest.mark.parametrize("order,depth", [(-1, -1), (0, 1), (1, 2), (5, 6)])
 def test_scattering_order_sets_max_depth(mi, order, depth):
     assert build(mi, spec(order=order))["integrator"]["max_depth"] == depth

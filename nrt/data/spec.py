@@ -42,7 +42,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 def _draw_element(rng: np.random.Generator, medium: Mapping, chromatic: bool, g: float) -> dict:
-    """One procedural cloud element in box-normalised units (the box is [-1, 1]^3)."""
+    """One procedural cloud element in box-normalised units (the box is [-1, 1]^3). Grey
+    extinction (``chromatic=False``) is one sigma_t for R, G and B with an RGB albedo, the
+    model Mitsuba renders (a one-channel sigma_t grid) and nrt's media learn."""
     sigma_t_max = float(medium["max_extinction"])
     scale = rng.uniform(0.5, 1.0) * sigma_t_max
     sigma_t = scale * (rng.uniform(0.4, 1.0, 3) if chromatic else np.ones(3))
@@ -101,7 +103,8 @@ def _resolve_elements(scene: Mapping, rng: np.random.Generator) -> list[dict]:
         if not chromatic:
             t = np.asarray(e["sigma_a"]) + np.asarray(e["sigma_s"])
             _require(np.allclose(t, t[0]), f"medium.elements[{i}]",
-                     "effects.chromatic=false needs sigma_a + sigma_s equal in R, G, B")
+                     "effects.chromatic=false needs sigma_a + sigma_s equal in R, G, B "
+                     "(one grey sigma_t; the albedo sigma_s / sigma_t may differ)")
         _require(min(e["sigma_a"]) >= 0 and min(e["sigma_s"]) >= 0, f"medium.elements[{i}]",
                  "sigma_a and sigma_s must be non-negative")
         if phase == "isotropic":
