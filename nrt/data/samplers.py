@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.physics.envmap import EnvironmentMap, uv_to_direction
+from nrt.physics.envmap import EnvironmentDirectionSampler
 from nrt.physics.phase import sample_uniform_sphere
-from nrt.physics.tonemap import luminance
 
 
 def uniform_box_points(n: int, bbox: torch.Tensor, generator: torch.Generator | None = None
@@ -51,27 +50,6 @@ def collocation_points(n: int, bbox: torch.Tensor, density: DensityPointSampler 
     if n_dense:
         parts.append(density.sample(n_dense, generator))
     return torch.cat(parts)
-
-
-class EnvironmentDirectionSampler:
-    """Look directions ``d`` drawn in proportion to ``E(d)`` (luminance x solid angle of
-    each texel row), jittered inside the texel; steers boundary samples toward the sun."""
-
-    def __init__(self, envmap: EnvironmentMap):
-        h, w = envmap.height, envmap.width
-        theta = torch.arange(h, dtype=torch.float64) / (h - 1) * torch.pi
-        solid = torch.sin(theta).clamp_min(0.5 * torch.sin(torch.tensor(torch.pi / (h - 1))))
-        weights = luminance(envmap.radiance.double()).clamp_min(0.0) * solid[:, None]
-        self.probs = (weights / weights.sum()).flatten()
-        self.height, self.width = h, w
-
-    def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        idx = torch.multinomial(self.probs, n, replacement=True, generator=generator)
-        row, col = idx // self.width, idx % self.width
-        jitter = torch.rand(n, 2, dtype=torch.float64, generator=generator) - 0.5
-        u = (col + 0.5 + jitter[:, 0]) / self.width
-        v = ((row + jitter[:, 1]) / (self.height - 1)).clamp(0.0, 1.0)
-        return uv_to_direction(u, v).float()
 
 
 def _face_counts(n: int, bbox: torch.Tensor) -> list[int]:

@@ -88,28 +88,43 @@ def split_sun(envmap: EnvironmentMap, threshold: float, max_suns: int = 4,
     return out, d, e
 
 
-def direct_inscatter(x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
-                     lights: DirectLights, sigma_t: Callable[[torch.Tensor], torch.Tensor],
-                     bbox: torch.Tensor, n_steps: int = 16) -> torch.Tensor:
-    """``S_direct`` (..., 3) at points ``x`` for travel directions ``w`` (..., 3).
+def direct_arrivals(x: torch.Tensor, lights: DirectLights,
+                    sigma_t: Callable[[torch.Tensor], torch.Tensor], bbox: torch.Tensor,
+                    n_steps: int = 16, jitter: bool = False
+                    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """What each known light delivers at points ``x`` (..., 3): a list of ``(toward,
+    power)``, the unit direction (..., 3) from ``x`` toward the light and the attenuated
+    irradiance ``P T(x -> light)`` (..., 3) arriving from it (light travels along
+    ``-toward``). ``sigma_t`` maps points (..., 3) to extinction (..., C)."""
+    arrivals = []
 
-    ``sigma_t`` maps points (..., 3) to extinction (..., C); ``g`` (...,) or None.
-    """
-    total = torch.zeros_like(x)
-
-    def shadowed(toward: torch.Tensor, power: torch.Tensor, t_max: torch.Tensor | None):
-        cos = -(toward * w).sum(-1)
-        phase = isotropic_phase(cos) if g is None else hg_phase(cos, g)
+    def attenuated(toward: torch.Tensor, power: torch.Tensor, t_max: torch.Tensor | None):
         _, t_exit, _ = ray_box_intersect(x, toward, bbox)
         t_end = t_exit if t_max is None else torch.minimum(t_exit, t_max)
-        tau = optical_depth(sigma_t, x, toward, torch.zeros_like(t_end), t_end, n_steps)
-        return phase.unsqueeze(-1) * power * torch.exp(-tau)
+        tau = optical_depth(sigma_t, x, toward, torch.zeros_like(t_end), t_end, n_steps, jitter)
+        arrivals.append((toward, power * torch.exp(-tau)))
 
     for p, intensity in zip(lights.positions, lights.intensities, strict=True):
         to_light = p - x
         dist2 = (to_light * to_light).sum(-1, keepdim=True).clamp_min(1e-6)
         dist = torch.sqrt(dist2)
-        total = total + shadowed(to_light / dist, intensity / dist2, dist.squeeze(-1))
+        attenuated(to_light / dist, intensity / dist2, dist.squeeze(-1))
     for d, irradiance in zip(lights.sun_directions, lights.sun_irradiance, strict=True):
-        total = total + shadowed(d.expand_as(x), irradiance, None)
+        attenuated(d.expand_as(x), irradiance, None)
+    return arrivals
+
+
+def direct_inscatter(x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
+                     lights: DirectLights, sigma_t: Callable[[torch.Tensor], torch.Tensor],
+                     bbox: torch.Tensor, n_steps: int = 16, jitter: bool = False
+                     ) -> torch.Tensor:
+    """``S_direct`` (..., 3) at points ``x`` for travel directions ``w`` (..., 3).
+
+    ``sigma_t`` maps points (..., 3) to extinction (..., C); ``g`` (...,) or None.
+    """
+    total = torch.zeros_like(x)
+    for toward, power in direct_arrivals(x, lights, sigma_t, bbox, n_steps, jitter):
+        cos = -(toward * w).sum(-1)
+        phase = isotropic_phase(cos) if g is None else hg_phase(cos, g)
+        total = total + phase.unsqueeze(-1) * power
     return total

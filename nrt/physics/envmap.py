@@ -17,6 +17,9 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
+
+from nrt.physics.tonemap import luminance
 
 
 def direction_to_uv(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -78,3 +81,48 @@ class EnvironmentMap:
         top = img[y0, x0] * (1 - wx) + img[y0, x1] * wx
         bottom = img[y0 + 1, x0] * (1 - wx) + img[y0 + 1, x1] * wx
         return top * (1 - wy) + bottom * wy
+
+
+class EnvironmentDirectionSampler:
+    """Look directions ``d`` drawn in proportion to ``E(d)`` with an exactly known density.
+
+    The sphere is cut into cells around Mitsuba's texels (column ``i`` spans ``u`` in
+    ``[i, i + 1) / W``; row ``j`` the polar band between its neighbours' midpoints, clipped
+    at the poles). A cell is drawn with probability ``(lum(E_ij) + floor) * Omega_ij``,
+    then a direction uniform in solid angle inside it, so :meth:`pdf` (per steradian) is
+    the cell's probability over its solid angle. A cell's luminance is the largest of its
+    texel's 3 x 3 neighbours (the bilinear lookup spreads a bright texel into the cells
+    beside it, which would otherwise be drawn too rarely). The small floor (``floor_fraction`` of
+    the mean luminance) keeps every direction reachable, as multiple importance sampling
+    needs. Used for inflow samples on the box faces and for the sky's first scattering.
+    """
+
+    def __init__(self, envmap: EnvironmentMap, floor_fraction: float = 1e-3):
+        h, w = envmap.height, envmap.width
+        rows = torch.arange(h, dtype=torch.float64)
+        self.cos_top = torch.cos(torch.pi * ((rows - 0.5) / (h - 1)).clamp(0.0, 1.0))
+        self.cos_bottom = torch.cos(torch.pi * ((rows + 0.5) / (h - 1)).clamp(0.0, 1.0))
+        solid = (self.cos_top - self.cos_bottom)[:, None] * (2 * torch.pi / w)  # (h, 1)
+        lum = luminance(envmap.radiance.double()).clamp_min(0.0)
+        wrapped = torch.cat((lum[:, -1:], lum, lum[:, :1]), 1)[None, None]  # u wraps around
+        lum = F.max_pool2d(F.pad(wrapped, (0, 0, 1, 1), mode="replicate"), 3, 1)[0, 0]
+        weights = (lum + floor_fraction * lum.mean().clamp_min(1e-30)) * solid
+        self.probs = (weights / weights.sum()).flatten()
+        self.density = (self.probs.reshape(h, w) / solid).float()  # per steradian
+        self.height, self.width = h, w
+
+    def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """``n`` unit look directions (n, 3), float32 on the CPU."""
+        idx = torch.multinomial(self.probs, n, replacement=True, generator=generator)
+        row, col = idx // self.width, idx % self.width
+        xi = torch.rand(n, 2, dtype=torch.float64, generator=generator)
+        cos = self.cos_top[row] + xi[:, 0] * (self.cos_bottom[row] - self.cos_top[row])
+        u = (col + xi[:, 1]) / self.width
+        return uv_to_direction(u, torch.acos(cos.clamp(-1.0, 1.0)) / torch.pi).float()
+
+    def pdf(self, d: torch.Tensor) -> torch.Tensor:
+        """Density per steradian (...,) of drawing the unit look directions ``d`` (..., 3)."""
+        u, v = direction_to_uv(d)
+        col = (u * self.width).long().clamp(0, self.width - 1)
+        row = torch.round(v * (self.height - 1)).long().clamp(0, self.height - 1)
+        return self.density.to(d.device)[row, col].to(d.dtype)

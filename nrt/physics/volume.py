@@ -54,15 +54,20 @@ def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) ->
 
 def optical_depth(
     sigma_t, origins: torch.Tensor, dirs: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor,
-    n_samples: int,
+    n_samples: int, jitter: bool = False,
 ) -> torch.Tensor:
-    """Midpoint-rule optical depth ``int_t0^t1 sigma_t(o + t d) dt`` along each ray.
+    """Optical depth ``int_t0^t1 sigma_t(o + t d) dt`` along each ray by the midpoint rule,
+    or with ``jitter`` by ``n_samples`` equal strata shifted by one uniform offset per ray
+    (an unbiased estimate of the depth that does not alias with a grid's cells).
 
     ``sigma_t`` maps points (..., 3) to extinction (..., C); returns (..., C). Segments
     with ``t1 <= t0`` give 0.
     """
     length = (t1 - t0).clamp_min(0.0)
-    frac = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + 0.5) / n_samples
+    offset = (torch.rand(*t0.shape, 1, dtype=origins.dtype, device=origins.device) if jitter
+              else 0.5)
+    frac = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + offset) \
+        / n_samples
     t = t0.unsqueeze(-1) + length.unsqueeze(-1) * frac  # (..., S)
     pts = origins.unsqueeze(-2) + t.unsqueeze(-1) * dirs.unsqueeze(-2)  # (..., S, 3)
     return sigma_t(pts).mean(-2) * length.unsqueeze(-1)
@@ -71,3 +76,11 @@ def optical_depth(
 def transmittance(tau: torch.Tensor) -> torch.Tensor:
     """``exp(-tau)`` of a non-negative optical depth (never overflows)."""
     return torch.exp(-tau.clamp_min(0.0))
+
+
+def resample_cells(grid: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Trilinear, cell-centred, edge-clamped resampling of a grid (R, R, R, C) to
+    ``resolution``^3 cells (the lookup of :func:`sample_grid` at the new cell centres)."""
+    vol = grid.permute(3, 0, 1, 2).unsqueeze(0)
+    out = F.interpolate(vol, size=(resolution,) * 3, mode="trilinear", align_corners=False)
+    return out[0].permute(1, 2, 3, 0).contiguous()
