@@ -80,6 +80,12 @@ def _resolve_elements(scene: Mapping, rng: np.random.Generator) -> list[dict]:
         for i, e in enumerate(elements):
             missing = {"center", "radius", "sigma_a", "sigma_s"} - set(e)
             _require(not missing, f"medium.elements[{i}]", f"missing {sorted(missing)}")
+            _require(isinstance(e["radius"], int | float) and e["radius"] > 0,
+                     f"medium.elements[{i}].radius", "must be one positive number (the "
+                     "element's size; use rotation and noise for other shapes)")
+            for key in ("center", "sigma_a", "sigma_s"):
+                _require(np.shape(e[key]) == (3,), f"medium.elements[{i}].{key}",
+                         "must be a list of 3 numbers")
             e.setdefault("rotation", np.eye(3).tolist())
             e.setdefault("noise_seed", i)
             e.setdefault("frequency", 2.0)

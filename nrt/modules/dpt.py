@@ -121,10 +121,6 @@ class DPTModule(L.LightningModule):
 
     @torch.no_grad()
     def _init_from_ea(self, ckpt: str | None) -> None:
-        if not ckpt or not Path(ckpt).is_file():
-            raise NrtError(f"init.ea_ckpt='{ckpt}' is not a checkpoint file. Train stage 1 "
-                           "first (nrt-train stage=ea scene=<same scene>) or pass "
-                           "init.ea_ckpt=<path/to/last.ckpt>.")
         res = self.sigma_t.shape[0]
         self.sigma_t.copy_(self._ea_density(res).expand_as(self.sigma_t))
         log.info("dpt starts from the EA density of %s at %d^3 cells", ckpt, res)

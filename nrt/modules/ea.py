@@ -15,6 +15,7 @@ import lightning as L
 import numpy as np
 import torch
 
+from nrt.errors import NrtError
 from nrt.metrics import density_agreement, psnr
 from nrt.modules.ea_field import EAField
 from nrt.modules.tensorboard import log_image
@@ -136,8 +137,14 @@ class EAModule(L.LightningModule):
         return {"density_grid": str(path)}
 
 
-def load_ea_field(ckpt_path: str, map_location: str | torch.device = "cpu") -> EAField:
-    """The trained EA field of a stage-1 checkpoint (for stage 2's density queries)."""
+def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu") -> EAField:
+    """The trained EA field of a stage-1 checkpoint (for the density queries of the stages
+    that start from it); a missing file is a user error naming the fix."""
+    if not ckpt_path or not Path(ckpt_path).is_file():
+        raise NrtError(f"init.ea_ckpt='{ckpt_path}' is not a checkpoint file. Train stage 1 "
+                       "first (nrt-train stage=ea scene=<same scene>) or pass "
+                       "init.ea_ckpt=<path/to/last.ckpt> (stage 2 also runs without a first "
+                       "stage: init=none).")
     module = EAModule.load_from_checkpoint(ckpt_path, map_location=map_location)
     return module.field
 

@@ -128,12 +128,15 @@ class NeuralMedium(Medium):
 
     def forward(self, x: torch.Tensor) -> MediumProperties:
         unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
-        h = self.modulation(unit) + self.offsets
-        rho = self.rho(x).unsqueeze(-1)
+        return self.heads(self.rho(x).unsqueeze(-1), self.modulation(unit) + self.offsets)
+
+    def heads(self, rho: torch.Tensor, h: torch.Tensor) -> MediumProperties:
+        """Properties from the density ``rho`` (..., 1) and the raw outputs ``h`` (..., n)
+        (exponents, logits and the g field's pre-activation, offsets included)."""
         if self.phase == "field":
             g = G_MAX * torch.tanh(h[..., self.g_index])
         elif self.phase == "shared":
-            g = (G_MAX * torch.tanh(self.g_shared)).expand(x.shape[:-1])
+            g = (G_MAX * torch.tanh(self.g_shared)).expand(h.shape[:-1])
         else:
             g = None
         if self.channels == 1:

@@ -66,59 +66,34 @@ def mean_radiance(envmap: EnvironmentMap) -> float:
     return float((lum * solid).sum() / solid.sum().clamp_min(1e-30))
 
 
-class RTEModule(L.LightningModule):
-    """Light field + medium trained on the RTE, boundary, observation and VRE objectives."""
+class RadiativeTransferStage(L.LightningModule):
+    """What every stage-2 formulation shares: the scene's effects (all scattering orders),
+    the training environment and its suns and emitters as known lights, the medium (the
+    dataset's ground truth in forward mode), the validation baselines, the property grids
+    that the metric callbacks score and the ``medium_grids.npz`` export. A subclass builds
+    ``self.light`` (with ``bbox`` and ``radiance_scale`` buffers) and ``self.medium`` and
+    implements training and :meth:`predict_pixels`."""
 
-    def __init__(self, effects: dict, light_field: dict, medium: dict, density: dict,
-                 weights: dict, samples: dict, lr: dict, detach_inscatter: bool = False,
-                 lr_final_factor: float = 0.1, medium_warmup: float = 0.0,
-                 sun: dict | None = None, grad_clip: float | None = None,
-                 eval_chunk: int = 4096,
-                 property_resolution: int | None = None):
+    def __init__(self, effects: dict, density: dict, sun: dict | None,
+                 property_resolution: int | None):
         super().__init__()
-        self.save_hyperparameters()
-        self.automatic_optimization = False
         if int(effects.get("max_scattering_order", -1)) != -1:
             raise NrtError(
                 f"scene.effects.max_scattering_order={effects['max_scattering_order']}: the RTE "
                 "stage solves for the full radiance (all scattering orders) and cannot match "
                 "photos rendered with truncated transport. Render the scene with -1 to train "
                 "stage 2 on it.")
-        unknown = set(weights) - set(OBJECTIVES)
-        if unknown:
-            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
-                           f"objectives are {list(OBJECTIVES)}.")
         if density["source"] not in DENSITY_SOURCES:
             raise NrtError(f"init.source must be one of {list(DENSITY_SOURCES)}, got "
                            f"'{density['source']}'.")
         self.effects = effects
-        self.light = LightField(**light_field)
         self.medium: Medium | None = None
-        if density["source"] != "ground_truth":
-            self.medium = self._neural_medium(effects, medium, density)
         self.envmap: EnvironmentMap | None = None  # the training environment E
         self.env_rest: EnvironmentMap | None = None  # E without its sun: the inflow of L
         self.env_sun: EnvironmentMap | None = None  # the sun's part E - E_rest
         self.lights: DirectLights | None = None
         self._env_sampler: EnvironmentDirectionSampler | None = None
-        self._density_sampler: DensityPointSampler | None = None
         self._baselines: dict[int, dict[str, float]] = {}
-
-    @staticmethod
-    def _neural_medium(effects: dict, medium: dict, density: dict) -> NeuralMedium:
-        ea = None
-        if density["source"] == "ea":
-            ckpt = density.get("ea_ckpt")
-            if not ckpt or not Path(ckpt).is_file():
-                raise NrtError(f"init.ea_ckpt='{ckpt}' is not a checkpoint file. Train stage 1 "
-                               "first (nrt-train stage=ea scene=<same scene>), pass "
-                               "init.ea_ckpt=<path/to/last.ckpt>, or use init=none for the "
-                               "single-stage ablation.")
-            ea = load_ea_field(ckpt)
-            ea.requires_grad_(bool(density.get("train", False)))
-            log.info("Stage 2 modulates the EA density of %s (%s)", ckpt,
-                     "fine-tuned" if density.get("train") else "frozen")
-        return NeuralMedium(effects, ea, **medium)
 
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
@@ -139,30 +114,6 @@ class RTEModule(L.LightningModule):
         scale = max(mean_radiance(env), 1e-6)
         self.light.radiance_scale.fill_(scale)
         self._set_lights(env, scale)
-
-    def configure_optimizers(self):
-        lr = self.hparams.lr
-        groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
-        if isinstance(self.medium, NeuralMedium):
-            density = self.medium.density_field
-            dens_ids = {id(p) for p in density.parameters()} if density is not None else set()
-            modulation = [p for p in self.medium.parameters() if id(p) not in dens_ids]
-            groups.append({"params": modulation, "lr": lr["medium"]})
-            if density is not None and self.hparams.density.get("train", False):
-                groups.append({"params": list(density.parameters()), "lr": lr["density"]})
-        opt = torch.optim.Adam(groups)
-        factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup
-
-        def progress() -> float:  # of the steps, or of budget_s in equal-time runs
-            return training_progress(self.trainer) if self._trainer is not None else 0.0
-
-        def decay(s: int) -> float:
-            return factor ** progress()
-
-        def medium(s: int) -> float:  # the medium waits until the light field is plausible
-            return decay(s) if progress() >= warmup else 0.0
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [medium] * (len(groups) - 1))
-        return [opt], [{"scheduler": sched, "interval": "step"}]
 
     def _set_lights(self, env: EnvironmentMap, scale: float) -> None:
         """Known lights: the scene's point emitters and, when ``sun.threshold`` is set, the
@@ -203,6 +154,116 @@ class RTEModule(L.LightningModule):
         if self.env_sun is None:
             return torch.ones(dirs.shape[0], dtype=torch.bool, device=dirs.device)
         return self.env_sun.lookup(dirs).sum(-1) <= 0
+
+    # ------------------------------------------------------------- validation
+    def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
+        h, w = batch["shape"]
+        ref = batch["rgb"]
+        pred = self.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
+        self.log("val/psnr_exit", psnr(pred["exit"], ref), batch_size=1)
+        scale = self.light.radiance_scale
+        self.log("val/image_mse", torch.mean(((pred["vre"] - ref) / scale) ** 2), batch_size=1)
+        for key, value in self._view_baselines(batch).items():
+            self.log(f"val/{key}", value, batch_size=1)
+        if batch_idx == 0:
+            log_image(self, "val/vre|exit|truth", torch.cat(
+                [p.reshape(h, w, 3) for p in (pred["vre"], pred["exit"], ref)], 1))
+        return {"image": pred["vre"].reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
+
+    def _view_baselines(self, batch: dict) -> dict[str, float]:
+        """PSNR of medium-free (background only) and no-scattering predictions (the true
+        medium's transmitted background ``T E(v)``, when ground truth exists); cached."""
+        view = int(batch["view"])
+        if view not in self._baselines:
+            ref, bg = batch["rgb"], batch["background"]
+            out = {"psnr_background_only": float(psnr(bg, ref))}
+            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
+            if gt is not None:
+                true = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
+                                         self.medium.bbox.cpu()).to(self.device)
+                with torch.no_grad():
+                    t_e = transmitted_background(true, batch["origins"], batch["dirs"], bg,
+                                                 int(self.hparams.samples["vre_samples"]))
+                out["psnr_transmitted_only"] = float(psnr(t_e, ref))
+            self._baselines[view] = out
+        return self._baselines[view]
+
+    def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
+        """The learned medium on R^3 cells (ground-truth layout); None in forward mode."""
+        if not isinstance(self.medium, NeuralMedium):
+            return None
+        return self.medium.grids(resolution)
+
+    # ------------------------------------------------------------------ export
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) at ``property_resolution``
+        (default: the ground truth's, else 64)."""
+        if not isinstance(self.medium, NeuralMedium):
+            return {}
+        res = self.hparams.property_resolution
+        if res is None:
+            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
+            res = gt["sigma_a"].shape[0] if gt is not None else 64
+        path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, self.property_grids(res),
+                                   self.medium.bbox)
+        return {"medium_grids": str(path)}
+
+
+class RTEModule(RadiativeTransferStage):
+    """Light field + medium trained on the RTE, boundary, observation and VRE objectives."""
+
+    def __init__(self, effects: dict, light_field: dict, medium: dict, density: dict,
+                 weights: dict, samples: dict, lr: dict, detach_inscatter: bool = False,
+                 lr_final_factor: float = 0.1, medium_warmup: float = 0.0,
+                 sun: dict | None = None, grad_clip: float | None = None,
+                 eval_chunk: int = 4096,
+                 property_resolution: int | None = None):
+        super().__init__(effects, density, sun, property_resolution)
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        unknown = set(weights) - set(OBJECTIVES)
+        if unknown:
+            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
+                           f"objectives are {list(OBJECTIVES)}.")
+        self.light = LightField(**light_field)
+        if density["source"] != "ground_truth":
+            self.medium = self._neural_medium(effects, medium, density)
+        self._density_sampler: DensityPointSampler | None = None
+
+    @staticmethod
+    def _neural_medium(effects: dict, medium: dict, density: dict) -> NeuralMedium:
+        ea = None
+        if density["source"] == "ea":
+            ckpt = density.get("ea_ckpt")
+            ea = load_ea_field(ckpt)
+            ea.requires_grad_(bool(density.get("train", False)))
+            log.info("Stage 2 modulates the EA density of %s (%s)", ckpt,
+                     "fine-tuned" if density.get("train") else "frozen")
+        return NeuralMedium(effects, ea, **medium)
+
+    def configure_optimizers(self):
+        lr = self.hparams.lr
+        groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
+        if isinstance(self.medium, NeuralMedium):
+            density = self.medium.density_field
+            dens_ids = {id(p) for p in density.parameters()} if density is not None else set()
+            modulation = [p for p in self.medium.parameters() if id(p) not in dens_ids]
+            groups.append({"params": modulation, "lr": lr["medium"]})
+            if density is not None and self.hparams.density.get("train", False):
+                groups.append({"params": list(density.parameters()), "lr": lr["density"]})
+        opt = torch.optim.Adam(groups)
+        factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup
+
+        def progress() -> float:  # of the steps, or of budget_s in equal-time runs
+            return training_progress(self.trainer) if self._trainer is not None else 0.0
+
+        def decay(s: int) -> float:
+            return factor ** progress()
+
+        def medium(s: int) -> float:  # the medium waits until the light field is plausible
+            return decay(s) if progress() >= warmup else 0.0
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [medium] * (len(groups) - 1))
+        return [opt], [{"scheduler": sched, "interval": "step"}]
 
     def density_sampler(self) -> DensityPointSampler:
         """Collocation sampler following the current extinction (rebuilt each validation)."""
@@ -281,57 +342,5 @@ class RTEModule(L.LightningModule):
             out["exit"].append(exit_)
         return {k: torch.cat(v) for k, v in out.items()}
 
-    def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
-        h, w = batch["shape"]
-        ref = batch["rgb"]
-        pred = self.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
-        self.log("val/psnr_exit", psnr(pred["exit"], ref), batch_size=1)
-        scale = self.light.radiance_scale
-        self.log("val/image_mse", torch.mean(((pred["vre"] - ref) / scale) ** 2), batch_size=1)
-        for key, value in self._view_baselines(batch).items():
-            self.log(f"val/{key}", value, batch_size=1)
-        if batch_idx == 0:
-            log_image(self, "val/vre|exit|truth", torch.cat(
-                [p.reshape(h, w, 3) for p in (pred["vre"], pred["exit"], ref)], 1))
-        return {"image": pred["vre"].reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
-
-    def _view_baselines(self, batch: dict) -> dict[str, float]:
-        """PSNR of medium-free (background only) and no-scattering predictions (the true
-        medium's transmitted background ``T E(v)``, when ground truth exists); cached."""
-        view = int(batch["view"])
-        if view not in self._baselines:
-            ref, bg = batch["rgb"], batch["background"]
-            out = {"psnr_background_only": float(psnr(bg, ref))}
-            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
-            if gt is not None:
-                true = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
-                                         self.medium.bbox.cpu()).to(self.device)
-                with torch.no_grad():
-                    t_e = transmitted_background(true, batch["origins"], batch["dirs"], bg,
-                                                 int(self.hparams.samples["vre_samples"]))
-                out["psnr_transmitted_only"] = float(psnr(t_e, ref))
-            self._baselines[view] = out
-        return self._baselines[view]
-
-    def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
-        """The learned medium on R^3 cells (ground-truth layout); None in forward mode."""
-        if not isinstance(self.medium, NeuralMedium):
-            return None
-        return self.medium.grids(resolution)
-
     def on_validation_epoch_end(self) -> None:
         self._density_sampler = None  # follow the medium as it learns
-
-    # ------------------------------------------------------------------ export
-    def export(self, run_dir: str | Path) -> dict[str, str]:
-        """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) at ``property_resolution``
-        (default: the ground truth's, else 64)."""
-        if not isinstance(self.medium, NeuralMedium):
-            return {}
-        res = self.hparams.property_resolution
-        if res is None:
-            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
-            res = gt["sigma_a"].shape[0] if gt is not None else 64
-        path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, self.property_grids(res),
-                                   self.medium.bbox)
-        return {"medium_grids": str(path)}

@@ -1,0 +1,75 @@
+"""Scattered light as spherical harmonics on a grid: the light field of split stage 2.
+
+The radiance splits into the uncollided part ``L_u`` (the environment and the known
+lights attenuated by the medium, computed exactly by :mod:`nrt.physics.sky_light` and
+:mod:`nrt.physics.direct_light`) and the light scattered at least once, ``L_s``, which this
+field learns: zero inflow on the box, smooth in direction, so a few SH bands hold it,
+
+    L_s(x, w) = sum_lm c_lm(x) Y_lm(w)    (radiance at x travelling along w),
+
+with ``c`` (RGB, in units of ``radiance_scale``) trilinear on a cell-centred grid over the
+medium box. Henyey-Greenstein scales band ``l`` by ``g^l``, so the in-scattered radiance of
+``L_s`` is exact and needs no direction samples (:meth:`inscatter`).
+
+The field also holds ``uncollided``: the SH projection of ``L_u`` on the same grid, a cache
+refreshed from the current medium by the stage (:meth:`set_uncollided`). With it the
+in-scattering of *all* light, ``sum g^l (u_lm + c_lm) Y_lm(w)``, costs two grid lookups,
+which makes the transport target (:mod:`nrt.losses.transport`) cheap to march.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from nrt.physics.sh import num_coefficients, phase_band_factors, sh_basis
+from nrt.physics.volume import sample_grid
+
+
+class SHGridLightField(nn.Module):
+    """``L_s(x, w)`` (..., 3) from SH coefficients of ``degree`` on ``resolution``^3 cells."""
+
+    def __init__(self, degree: int = 2, resolution: int = 16):
+        super().__init__()
+        if degree < 0 or resolution < 2:
+            raise ValueError(f"model.light_field needs degree >= 0 and resolution >= 2, got "
+                             f"{degree} and {resolution}")
+        self.degree = degree
+        k = 3 * num_coefficients(degree)
+        self.coefficients = nn.Parameter(torch.zeros(resolution, resolution, resolution, k))
+        self.register_buffer("uncollided", torch.zeros(resolution, resolution, resolution, k))
+        self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
+        self.register_buffer("radiance_scale", torch.tensor(1.0))
+
+    @property
+    def resolution(self) -> int:
+        return self.coefficients.shape[0]
+
+    def _lookup(self, grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        c = sample_grid(grid, x, self.bbox)
+        return c.reshape(*x.shape[:-1], 3, num_coefficients(self.degree)) * self.radiance_scale
+
+    def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """Scattered radiance ``L_s(x, w)`` (..., 3) at points ``x`` along travel ``w``."""
+        return (self._lookup(self.coefficients, x) * sh_basis(w, self.degree).unsqueeze(-2)
+                ).sum(-1)
+
+    def inscatter(self, x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
+                  with_uncollided: bool = False, trainable: bool = True) -> torch.Tensor:
+        """``int f(w' . w) L(x, w') dw'`` (..., 3) of ``L_s`` (and of the cached uncollided
+        light with ``with_uncollided``), exact for HG of ``g`` (...,) or isotropic (None).
+        ``trainable=False`` keeps gradients from the coefficients (not from ``g``)."""
+        grid = self.coefficients if trainable else self.coefficients.detach()
+        if with_uncollided:
+            grid = grid + self.uncollided
+        basis = sh_basis(w, self.degree) * phase_band_factors(g, self.degree).to(w)
+        return (self._lookup(grid, x) * basis.unsqueeze(-2)).sum(-1)
+
+    @torch.no_grad()
+    def set_uncollided(self, coefficients: torch.Tensor, blend: float = 1.0) -> None:
+        """Store the uncollided light's SH coefficients at the cell centres, (R^3, 3, K) in
+        radiance units, ``[z, y, x]`` order; ``blend < 1`` averages them with the cache
+        (an exponential moving average over refreshes: less Monte Carlo noise)."""
+        r = self.resolution
+        new = (coefficients / self.radiance_scale).reshape(r, r, r, -1)
+        self.uncollided.mul_(1 - blend).add_(blend * new)

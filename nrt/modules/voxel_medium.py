@@ -1,0 +1,99 @@
+"""The medium of split stage 2: the EA density modulated on voxels, coarse to fine.
+
+``sigma_a = rho exp(a)``, ``sigma_s = rho exp(s)`` per RGB channel (grey scenes:
+``sigma_t = rho exp(t)`` with ``albedo = sigmoid(b)`` per channel), ``g`` one shared value
+(``phase=hg``) or ``G_MAX tanh(h)`` per voxel (``varying_hg``), as in
+:class:`~nrt.modules.medium.NeuralMedium`, whose heads this class shares. ``rho`` is the
+frozen EA density baked once onto ``R``^3 cells (:meth:`set_density`); the modulation
+``(a, s[, h])`` lives on a coarser grid that doubles during training
+(:mod:`nrt.modules.coarse_to_fine`, as the path-tracing baseline does).
+
+Transport queries the medium many times per step (shadow rays, marches), so the properties
+are composed once on the ``R``^3 cells (:meth:`voxels`, differentiable) and then read by a
+single trilinear lookup each: :class:`Voxels`. Between cell centres the properties
+interpolate linearly, as Mitsuba's grid volumes do.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from nrt.modules.medium import MediumProperties, NeuralMedium
+from nrt.physics.volume import cell_centres, resample_cells, sample_grid
+
+
+class Voxels:
+    """Properties composed on cells: ``stacked`` (R, R, R, C + 3 [+ 1]) holds sigma_t (C = 3,
+    or 1 when grey), the RGB albedo and, for a g field, g; ``g_shared`` a scalar or None.
+    Callable like a :class:`~nrt.modules.medium.Medium` (``voxels(x)`` ->
+    :class:`MediumProperties`); :meth:`sigma_t` reads only the extinction."""
+
+    def __init__(self, stacked: torch.Tensor, channels: int, phase: str,
+                 g_shared: torch.Tensor | None, bbox: torch.Tensor):
+        self.stacked, self.channels, self.phase = stacked, channels, phase
+        self.extinction = stacked[..., :channels].contiguous()
+        self.g_shared, self.bbox = g_shared, bbox
+
+    def detached(self) -> Voxels:
+        """The same voxels without gradient (targets and caches computed from them)."""
+        g = None if self.g_shared is None else self.g_shared.detach()
+        return Voxels(self.stacked.detach(), self.channels, self.phase, g, self.bbox)
+
+    def sigma_t(self, x: torch.Tensor) -> torch.Tensor:
+        return sample_grid(self.extinction, x, self.bbox)
+
+    def __call__(self, x: torch.Tensor) -> MediumProperties:
+        v = sample_grid(self.stacked, x, self.bbox)
+        c = self.channels
+        sigma_t, albedo = v[..., :c], v[..., c:c + 3]
+        if self.phase == "field":
+            g = v[..., c + 3]
+        elif self.phase == "shared":
+            g = self.g_shared.expand(x.shape[:-1])
+        else:
+            g = None
+        return MediumProperties(sigma_t * (1 - albedo), sigma_t * albedo, albedo, g,
+                                extinction=sigma_t if c == 1 else None)
+
+
+class VoxelMedium(NeuralMedium):
+    """EA density (baked on ``density_resolution``^3 cells) times a grid modulation that
+    starts at ``resolution``^3 cells."""
+
+    def __init__(self, effects: dict, resolution: int = 8, density_resolution: int = 64,
+                 init_albedo: float = 0.8):
+        super().__init__(effects, None, modulation="grid", grid_resolution=resolution,
+                         init_albedo=init_albedo)
+        r = density_resolution
+        self.register_buffer("density", torch.ones(r, r, r, 1))
+
+    @property
+    def resolution(self) -> int:
+        """Cells per axis of the modulation grid now."""
+        return self.modulation.values.shape[0]
+
+    @torch.no_grad()
+    def set_density(self, density) -> None:
+        """Bake ``density(points (N, 3)) -> (N,)`` (the EA field's) at the cell centres."""
+        r = self.density.shape[0]
+        pts = cell_centres(r, self.bbox).reshape(-1, 3)
+        values = torch.cat([density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
+        self.density.copy_(values.reshape(r, r, r, 1).clamp_min(0.0))
+
+    def rho(self, x: torch.Tensor) -> torch.Tensor:
+        return sample_grid(self.density, x, self.bbox)[..., 0]
+
+    def voxels(self) -> Voxels:
+        """The properties on the density's cells (differentiable in the modulation)."""
+        r = self.density.shape[0]
+        h = resample_cells(self.modulation.values, r) + self.offsets
+        props = self.heads(self.density, h)
+        parts = [props.sigma_t, props.albedo]
+        if self.phase == "field":
+            parts.append(props.g.unsqueeze(-1))
+        g_shared = props.g.reshape(-1)[0] if self.phase == "shared" else None
+        return Voxels(torch.cat(parts, -1), self.channels, self.phase, g_shared, self.bbox)
+
+    def forward(self, x: torch.Tensor) -> MediumProperties:
+        return self.voxels()(x)
+
