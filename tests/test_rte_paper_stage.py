@@ -1,6 +1,8 @@
-"""Stage 2 end to end: forward mode against Mitsuba, ``stage=ea`` then ``stage=rte`` via the
-real CLI, the terms a scene's effects switch on and off, and hard cases that must never
-put NaN or Inf anywhere."""
+"""The paper's formulation of stage 2 (``experiment=rte_paper``: SIREN light field, RTE
+residual, boundary, observation and VRE objectives) end to end: forward mode against
+Mitsuba, ``stage=ea`` then ``stage=rte`` via the real CLI, the terms a scene's effects
+switch on and off, and hard cases that must never put NaN or Inf anywhere. The default
+stage 2 (split) has its own tests in ``test_rte_split_stage.py``."""
 
 import hydra
 import lightning as L
@@ -15,6 +17,7 @@ from nrt.data.render import ensure_dataset
 from nrt.modules import rte as rte_module
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
+PAPER = "experiment=rte_paper"
 
 
 FORWARD_PSNR_MIN = 30.5
@@ -35,7 +38,8 @@ def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     :data:`FORWARD_PSNR_MIN` dB, and beat the no-scattering prediction ``T E(v)`` of the
     same medium by > 6 dB (measured 9.0-9.6): only a light field that carries the scattered
     light, with the right lobe and albedo, gets there."""
-    proc = run_train(tmp_path, tiny_dataset.parent, "scene.medium.g=0.7", stage="forward")
+    proc = run_train(tmp_path, tiny_dataset.parent, "scene.medium.g=0.7", PAPER,
+                     stage="forward")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_csv_metrics(only_run_dir(tmp_path, "forward"))
     ours = last_value(rows, "val/psnr")
@@ -46,8 +50,9 @@ def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
 
 @pytest.mark.slow  # ~30 s for stage 2 after the session's EA run (~30 s)
 def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, tiny_dataset):
-    """``stage=ea`` then ``stage=rte`` through the CLI, checked for what stage 2 does today
-    at the tiny budget: it finds the EA checkpoint itself and says so, logs the time and
+    """``stage=ea`` then ``stage=rte experiment=rte_paper`` through the CLI, checked for what
+    the paper's formulation does at the tiny budget: it starts from the EA checkpoint and
+    says so, logs the time and
     loss of every objective and the property MSEs from step 0, fits the held-out photos
     with its VRE image, and exports the medium in the ground truth's layout.
 
@@ -61,10 +66,11 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"
-    proc = run_train(out, tiny_dataset.parent, stage="rte")
+    proc = run_train(out / "paper", tiny_dataset.parent, PAPER, f"init.ea_ckpt={ea_ckpt}",
+                     stage="rte")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    assert f"Stage rte starts from EA checkpoint {ea_ckpt}" in proc.stdout + proc.stderr
-    run = only_run_dir(out, "rte")
+    assert f"Stage 2 modulates the EA density of {ea_ckpt}" in proc.stdout + proc.stderr
+    run = only_run_dir(out / "paper", "rte")
     rows = read_csv_metrics(run)
     for name in ("rte", "bc", "obs", "vre"):
         assert values(rows, f"time/step_{name}_s") and values(rows, f"train/loss_{name}")
@@ -106,10 +112,12 @@ SMALL = ["budget.rte.collocation_points=256", "budget.rte.boundary_points=256",
          "budget.rte.vre_samples=12", "budget.rte.inscatter_directions=4"]
 
 
-def build(tmp_path, *overrides: str, stage: str = "rte"):
-    """Model and DataModule of ``stage=<stage> preset=tiny init=none`` plus ``overrides``,
-    on a 16x16, 8 spp dataset rendered into ``tmp_path``."""
-    cfg = compose_config("train", [f"stage={stage}", "preset=tiny", "init=none", *SMALL,
+def build(tmp_path, *overrides: str, stage: str = "rte", paper: bool = True):
+    """Model and DataModule of ``stage=<stage> preset=tiny init=none`` plus ``overrides``
+    (with ``paper``: the paper's formulation at small counts), on a 16x16, 8 spp dataset
+    rendered into ``tmp_path``."""
+    chosen = [PAPER, *SMALL] if paper else []
+    cfg = compose_config("train", [f"stage={stage}", "preset=tiny", "init=none", *chosen,
                                    "scene.cameras.width=16", "scene.cameras.height=16",
                                    "scene.spp=8", *overrides])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)

@@ -9,15 +9,49 @@ transmitted background ``T_N E(v)`` is part of the sum (DESIGN.md section 2).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from nrt.losses.rte import DirectSource
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.light_field import LightField
-from nrt.modules.medium import Medium
+from nrt.modules.medium import Medium, MediumProperties
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.inscatter import inscattered_radiance
 from nrt.physics.volume import ray_box_intersect
+
+InScatter = Callable[[torch.Tensor, torch.Tensor, MediumProperties], torch.Tensor]
+"""``(x, w, properties) -> S`` (..., 3): in-scattered radiance at points ``x`` toward
+travel directions ``w``, given the medium's properties there."""
+
+
+def march_view_rays(bbox: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+                    n_samples: int, jitter: bool
+                    ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    """Samples of view rays inside the box: ``hit`` (R,), and for the rays that hit,
+    points (H, n, 3) in ``n_samples`` strata between entry and exit and the strata's
+    lengths (H, n); None for both when no ray hits."""
+    t0, t1, hit = ray_box_intersect(origins, dirs, bbox)
+    if not hit.any():
+        return hit, None, None
+    t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
+    return hit, origins[hit].unsqueeze(1) + t.unsqueeze(-1) * dirs[hit].unsqueeze(1), delta
+
+
+def render_view_rays(medium, origins: torch.Tensor, dirs: torch.Tensor,
+                     background: torch.Tensor, n_samples: int, inscatter: InScatter,
+                     jitter: bool = True) -> torch.Tensor:
+    """Pixels ``I`` (R, 3) of view rays by the VRE with the in-scattering ``inscatter``
+    (travel direction ``-v`` at every sample); ``medium(x)`` gives the properties."""
+    hit, x, delta = march_view_rays(medium.bbox, origins, dirs, n_samples, jitter)
+    if x is None:
+        return background.clone()
+    w = (-dirs[hit]).unsqueeze(1).expand_as(x)
+    props = medium(x)
+    color, _ = alpha_composite(props.sigma_t, delta, props.albedo * inscatter(x, w, props),
+                               background[hit])
+    return background.index_put((hit,), color.to(background.dtype))
 
 
 def vre_render(light: LightField, medium: Medium, origins: torch.Tensor, dirs: torch.Tensor,
@@ -29,14 +63,11 @@ def vre_render(light: LightField, medium: Medium, origins: torch.Tensor, dirs: t
     value of :func:`~nrt.losses.unbiased.unbiased_square`). The estimates draw independent
     in-scattering directions and share everything else: the jittered positions, the
     medium and the known lights' first scattering there."""
-    t0, t1, hit = ray_box_intersect(origins, dirs, medium.bbox)
+    hit, x, delta = march_view_rays(medium.bbox, origins, dirs, n_samples, jitter)
     outs = [background.clone() for _ in range(estimates)]
-    if not hit.any():
+    if x is None:
         return outs
-    o, v = origins[hit], dirs[hit]
-    t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
-    x = o.unsqueeze(1) + t.unsqueeze(-1) * v.unsqueeze(1)
-    w = (-v).unsqueeze(1).expand_as(x)
+    w = (-dirs[hit]).unsqueeze(1).expand_as(x)
     props = medium(x)
     s_direct = direct_source(x, w, props) if direct_source is not None else 0.0
     for k in range(estimates):
@@ -83,11 +114,9 @@ def transmitted_background(medium: Medium, origins: torch.Tensor, dirs: torch.Te
                            background: torch.Tensor, n_samples: int) -> torch.Tensor:
     """The no-scattering prediction ``T E(v)`` (R, 3): the background seen through the
     medium's extinction, with nothing scattered into the ray."""
-    t0, t1, hit = ray_box_intersect(origins, dirs, medium.bbox)
+    hit, x, delta = march_view_rays(medium.bbox, origins, dirs, n_samples, jitter=False)
     out = background.clone()
-    if hit.any():
-        t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter=False)
-        x = origins[hit].unsqueeze(1) + t.unsqueeze(-1) * dirs[hit].unsqueeze(1)
+    if x is not None:
         sigma_t = medium(x).sigma_t
         _, t_final = alpha_composite(sigma_t, delta, torch.zeros_like(sigma_t), background[hit])
         out[hit] = t_final * background[hit]

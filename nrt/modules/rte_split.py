@@ -1,0 +1,252 @@
+"""Stage 2 with the first collision split off (``nrt-train stage=rte``, the default).
+
+The RTE is linear, so the radiance splits into the uncollided light and the light
+scattered at least once, and only the second is learned:
+
+- uncollided: ``T E(v)`` for the camera rays; inside the medium the sun-less sky's first
+  scattering by MIS shadow rays (:func:`~nrt.physics.sky_light.sky_inscatter`) and the
+  suns' and emitters' by shadow rays (:mod:`~nrt.physics.direct_light`): exact up to
+  Monte Carlo noise, and differentiated with respect to the medium;
+- scattered: :class:`~nrt.modules.sh_light_field.SHGridLightField`, SH coefficients on a
+  grid, zero on inflow and smooth in direction, whose in-scattering is exact for HG.
+
+Two objectives (``losses.weights``):
+
+- ``photo``: the training photos against the VRE of the camera rays with that
+  in-scattering (:mod:`~nrt.losses.photo`); it trains the medium. The scattered light's
+  coefficients enter it without gradient (their dependence on the medium is carried by
+  the transport objective between steps), its ``g^l`` factors with gradient;
+- ``transport``: the integral form of the RTE for the scattered light
+  (:mod:`~nrt.losses.transport`); it trains the light field only.
+
+The medium is :class:`~nrt.modules.voxel_medium.VoxelMedium`: the frozen EA density baked on
+a grid, modulated by a grid that doubles during the run. The SH projection of the
+uncollided light on the light field's grid is refreshed from the current medium every
+``samples.uncollided_every`` steps. The photo objective starts after ``light_warmup`` of
+the run, so the medium does not explain light the light field has not learned yet.
+
+Forward mode (``stage=forward``): the medium is the dataset's ground truth and only the
+transport objective runs.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import torch
+
+from nrt.callbacks import training_progress
+from nrt.errors import NrtError
+from nrt.losses.observation import exit_radiance
+from nrt.losses.photo import photo_loss
+from nrt.losses.transport import transport_loss
+from nrt.losses.vre import render_view_rays, transmitted_background
+from nrt.modules.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.ea import load_ea_field
+from nrt.modules.rte import RadiativeTransferStage
+from nrt.modules.sh_light_field import SHGridLightField
+from nrt.modules.voxel_medium import VoxelMedium, Voxels
+from nrt.physics.direct_light import direct_inscatter
+from nrt.physics.phase import sample_uniform_sphere
+from nrt.physics.sky_light import sky_inscatter, uncollided_sh
+from nrt.physics.volume import cell_centres
+
+log = logging.getLogger(__name__)
+
+OBJECTIVES = ("photo", "transport")
+
+
+def extinction(medium):
+    """``x -> sigma_t`` of a medium: one lookup for voxels, the properties otherwise."""
+    return medium.sigma_t if isinstance(medium, Voxels) else (lambda x: medium(x).sigma_t)
+
+
+def detached(medium):
+    """The medium without gradient (voxels detached; a ground truth has none)."""
+    return medium.detached() if isinstance(medium, Voxels) else medium
+
+
+class SplitRTEModule(RadiativeTransferStage):
+    """Scattered-light SH grid + voxel medium on the photo and transport objectives."""
+
+    def __init__(self, effects: dict, light_field: dict, medium: dict, density: dict,
+                 weights: dict, samples: dict, lr: dict, lr_final_factor: float = 0.1,
+                 light_warmup: float = 0.05, photo_tonemap: str = "log",
+                 sun: dict | None = None, eval_chunk: int = 4096,
+                 property_resolution: int | None = None):
+        super().__init__(effects, density, sun, property_resolution)
+        self.save_hyperparameters()
+        self.automatic_optimization = False
+        unknown = set(weights) - set(OBJECTIVES)
+        if unknown:
+            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
+                           f"objectives of stage 2 are {list(OBJECTIVES)} (the paper's four, "
+                           "rte/bc/obs/vre, are experiment=rte_paper).")
+        check_schedule(medium["resolutions"], medium["upsample_at"],
+                       "budget.rte.medium_resolutions / medium_upsample_at")
+        # isotropic in-scattering reads band 0 only: the higher bands would be computed for
+        # nothing (DESIGN.md: simulate only what the scene calls for)
+        degree = 0 if effects.get("phase") == "isotropic" else int(light_field["degree"])
+        self.light = SHGridLightField(degree, int(light_field["resolution"]))
+        if density["source"] != "ground_truth":  # init=none: the modulation alone (rho = 1)
+            self.medium = VoxelMedium(effects, medium["resolutions"][0],
+                                      medium["density_resolution"], medium["init_albedo"])
+        self._ea_ckpt = density.get("ea_ckpt")
+        self._baked = False
+        self._uncollided_fresh = False
+
+    # ----------------------------------------------------------------- set-up
+    def setup(self, stage: str) -> None:
+        super().setup(stage)
+        if isinstance(self.medium, VoxelMedium) and self.hparams.density["source"] == "ea" \
+                and not self._baked and self._trainer is not None and \
+                self.trainer.datamodule is not None:
+            ea = load_ea_field(self._ea_ckpt).to(self.device)
+            self.medium.set_density(ea.density)  # a resumed run loads the same values
+            self._baked = True
+            log.info("Stage 2 modulates the EA density of %s, baked on %d^3 cells",
+                     self._ea_ckpt, self.medium.density.shape[0])
+
+    def configure_optimizers(self):
+        lr = self.hparams.lr
+        groups = [{"params": [self.light.coefficients], "lr": lr["light"]}]
+        if isinstance(self.medium, VoxelMedium):
+            groups.append({"params": [p for p in self.medium.parameters()], "lr": lr["medium"]})
+        opt = torch.optim.Adam(groups)
+        factor = self.hparams.lr_final_factor
+
+        def decay(step: int) -> float:  # over the run's steps, or its budget_s
+            return factor ** self.progress()
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, decay)
+        return [opt], [{"scheduler": sched, "interval": "step"}]
+
+    def progress(self) -> float:
+        return training_progress(self.trainer) if self._trainer is not None else 0.0
+
+    # ------------------------------------------------------------- transport
+    def transport_medium(self):
+        """The medium as transport reads it: composed voxels (one lookup per query) for the
+        learned medium, the ground truth itself in forward mode."""
+        return self.medium.voxels() if isinstance(self.medium, VoxelMedium) else self.medium
+
+    def inscatter(self, medium):
+        """In-scattering of all light for the camera rays' VRE: the sky's and the known
+        lights' first scattering (with gradients to ``medium``) plus the scattered light's
+        exact SH in-scattering (coefficients without gradient, ``g^l`` with)."""
+        s = self.hparams.samples
+        sigma_t = extinction(medium)
+
+        def source(x, w, props):
+            total = sky_inscatter(x, w, props.g, sigma_t, medium.bbox, self.env_rest,
+                                  self._env_sampler, int(s["sky_env_directions"]),
+                                  int(s["sky_phase_directions"]), int(s["shadow_steps"]))
+            if self.lights is not None and len(self.lights):
+                total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
+                                                 medium.bbox, int(s["shadow_steps"]), jitter=True)
+            return total + self.light.inscatter(x, w, props.g, trainable=False)
+        return source
+
+    @torch.no_grad()
+    def refresh_uncollided(self, medium) -> None:
+        """SH projection of the uncollided light at the light field's cell centres."""
+        s = self.hparams.samples
+        sigma_t = extinction(medium)
+        pts = cell_centres(self.light.resolution, self.light.bbox).reshape(-1, 3)
+        chunk = int(s.get("uncollided_chunk", 2048))
+        coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, self.light.bbox,
+                                        self.env_rest, self._env_sampler, self.lights,
+                                        self.light.degree, int(s["uncollided_directions"]),
+                                        int(s["shadow_steps"]))
+                          for i in range(0, len(pts), chunk)])
+        blend = 1.0 if not self._uncollided_fresh else float(s.get("uncollided_blend", 1.0))
+        self.light.set_uncollided(coef, blend)
+        self._uncollided_fresh = True
+
+    def _update_resolution(self) -> None:
+        if not isinstance(self.medium, VoxelMedium):
+            return
+        m = self.hparams.medium
+        res = resolution_at(self.progress(), m["resolutions"], m["upsample_at"])
+        if res != self.medium.resolution:
+            resample_parameter(self.medium.modulation.values, self.optimizers().optimizer, res)
+            log.info("Medium modulation resampled to %d^3 cells at step %d", res,
+                     self.global_step)
+
+    # --------------------------------------------------------------- training
+    def objective(self, name: str, batch: dict, medium) -> torch.Tensor:
+        s, bbox = self.hparams.samples, self.light.bbox
+        if name == "transport":
+            n = int(s["transport_points"])
+            pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
+            dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
+            return transport_loss(self.light, detached(medium), pts, dirs,
+                                  int(s["transport_samples"]))
+        n = int(s["photo_rays"])
+        pred = render_view_rays(medium, batch["origins"][:n], batch["dirs"][:n],
+                                batch["background"][:n], int(s["vre_samples"]),
+                                self.inscatter(medium))
+        return photo_loss(pred, batch["rgb"][:n], self.light.radiance_scale,
+                          self.hparams.photo_tonemap)
+
+    def active_weights(self) -> dict[str, float]:
+        photo_on = self.progress() >= self.hparams.light_warmup and \
+            isinstance(self.medium, VoxelMedium)
+        return {k: float(w) for k, w in self.hparams.weights.items()
+                if float(w) > 0 and (k != "photo" or photo_on)}
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        opt = self.optimizers()
+        self._update_resolution()
+        medium = self.transport_medium()
+        start = time.perf_counter()
+        every = int(self.hparams.samples["uncollided_every"])
+        if not self._uncollided_fresh or self.global_step % every == 0:
+            self.refresh_uncollided(detached(medium))
+        self.log("time/step_uncollided_s", time.perf_counter() - start)
+        opt.zero_grad(set_to_none=True)
+        total = 0.0
+        for name, weight in self.active_weights().items():
+            start = time.perf_counter()
+            loss = self.objective(name, batch, medium)
+            self.manual_backward(weight * loss)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+            self.log(f"time/step_{name}_s", time.perf_counter() - start)
+            self.log(f"train/loss_{name}", loss.detach())
+            total = total + weight * loss.detach()
+        self.log("train/loss", total, prog_bar=True)
+        if isinstance(self.medium, VoxelMedium):
+            self.log("train/medium_resolution", float(self.medium.resolution))
+        opt.step()
+        self.lr_schedulers().step()
+        return torch.as_tensor(total)
+
+    # ------------------------------------------------------------- validation
+    def predict_pixels(self, origins: torch.Tensor, dirs: torch.Tensor,
+                       background: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Two predictions of ``L(o, -v)`` (R, 3) for view rays, chunked, without graph:
+        ``vre`` (the photo objective's rendering, strata centres) and ``exit`` (``T E(v)``
+        plus the scattered light where the ray leaves the box: the light field alone)."""
+        s, chunk = self.hparams.samples, self.hparams.eval_chunk
+        out: dict[str, list] = {"vre": [], "exit": []}
+        with torch.no_grad():
+            medium = self.transport_medium()
+            source = self.inscatter(medium)
+            for i in range(0, len(origins), chunk):
+                o, d, bg = origins[i:i + chunk], dirs[i:i + chunk], background[i:i + chunk]
+                out["vre"].append(render_view_rays(medium, o, d, bg, int(s["vre_samples"]),
+                                                   source, jitter=False))
+                scattered = exit_radiance(self.light, o, d, torch.zeros_like(bg))
+                out["exit"].append(transmitted_background(medium, o, d, bg,
+                                                          int(s["vre_samples"])) + scattered)
+        return {k: torch.cat(v) for k, v in out.items()}
+
+    # ------------------------------------------------------------------ resume
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Resize the modulation grid to the checkpoint's resolution before its state is
+        loaded; the baked density comes with the state (no EA field needed)."""
+        values = checkpoint.get("state_dict", {}).get("medium.modulation.values")
+        if values is not None and isinstance(self.medium, VoxelMedium):
+            self.medium.modulation.values.data = torch.zeros_like(values)
+        self._baked = True
