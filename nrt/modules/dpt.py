@@ -37,14 +37,14 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
 from nrt.errors import NrtError
+from nrt.modules.coarse_to_fine import resample_parameter, resolution_at
 from nrt.modules.tensorboard import log_image
 from nrt.physics.phase import G_MAX
-from nrt.physics.volume import cell_centres
+from nrt.physics.volume import cell_centres, resample_cells
 
 log = logging.getLogger(__name__)
 
@@ -195,31 +195,23 @@ class DPTModule(L.LightningModule):
         """Coarse to fine over the run's course (steps, or seconds of a ``budget_s``)."""
         from nrt.callbacks import training_progress
 
-        done = training_progress(self.trainer)
-        return int(self.hparams.resolutions[sum(done >= f for f in self.hparams.upsample_at)])
+        return resolution_at(training_progress(self.trainer), self.hparams.resolutions,
+                             self.hparams.upsample_at)
 
     @torch.no_grad()
     def _resize(self, res: int) -> None:
-        """Trilinear, cell-centred resampling of every grid to res^3, and of Adam's moments
-        with it (a restart of the moments made each voxel jump by the full lr). With
-        ``ea_detail`` sigma_t also gets back the EA density's detail that the coarse grid
-        could not hold (EA at res^3 minus EA at the old resolution, upsampled): a doubling
-        without optimisation in between yields the EA density at res^3 itself."""
+        """Trilinear, cell-centred resampling of every grid to res^3, Adam's state for them
+        restarted (:mod:`nrt.modules.coarse_to_fine`; moments resampled with the grid left
+        the steps 8x too small after a doubling). With ``ea_detail`` sigma_t also gets back
+        the EA density's detail that the coarse grid could not hold (EA at res^3 minus EA at
+        the old resolution, upsampled): a doubling without optimisation in between yields
+        the EA density at res^3 itself."""
         opt = self.optimizers().optimizer
         old = self.sigma_t.shape[0]
-
-        def resample(t: torch.Tensor) -> torch.Tensor:
-            vol = t.permute(3, 0, 1, 2).unsqueeze(0)
-            return F.interpolate(vol, size=(res,) * 3, mode="trilinear",
-                                 align_corners=False)[0].permute(1, 2, 3, 0).contiguous()
         for p in self.grids().values():
-            state = opt.state.get(p, {})
-            for key, value in state.items():
-                if torch.is_tensor(value) and value.shape == p.shape:
-                    state[key] = resample(value)
-            p.data = resample(p.data)
+            resample_parameter(p, opt, res)
         if self.hparams.ea_detail:
-            detail = self._ea_density(res) - resample(self._ea_density(old))
+            detail = self._ea_density(res) - resample_cells(self._ea_density(old), res)
             self.sigma_t.data = (self.sigma_t.data + detail).clamp(0, self.hparams.max_sigma_t)
         log.info("dpt grids doubled to %d^3 at step %d", res, self.global_step)
 
