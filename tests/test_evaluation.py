@@ -179,7 +179,7 @@ def tiny_sweep(tmp_path_factory, tiny_ea_run, tiny_dataset):
     out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-2000:]
     proc = run_train(out, tiny_dataset.parent, "experiment=accuracy_vs_time",
-                     "ablation=base,detached", "budget.rte.steps=12", "budget.val_every=6",
+                     "ablation=base,linear_photos", "budget.rte.steps=12", "budget.val_every=6",
                      "budget.checkpoint_every=6", stage="rte")
     assert proc.returncode == 0, proc.stderr[-3000:]
     sweeps = sorted((out / "multirun").iterdir())
@@ -194,13 +194,13 @@ def test_report_draws_one_curve_per_sweep_setting(tiny_sweep, tmp_path):
     assert (tmp_path / "accuracy_vs_time.png").stat().st_size > 10_000
     rows = (tmp_path / "accuracy_vs_time.csv").read_text().splitlines()[1:]
     labels = {r.split(",")[0] for r in rows}
-    assert labels == {"ablation=base", "ablation=detached"}
+    assert labels == {"ablation=base", "ablation=linear_photos"}
     psnr_times = [float(r.split(",")[4]) for r in rows
                   if r.startswith("ablation=base,") and ",val/psnr," in r]
     assert len(psnr_times) == 2 and psnr_times[0] < psnr_times[1]
     mse = [r for r in rows if r.startswith("ablation=base,") and "mse_sigma_t" in r]
     assert float(mse[0].split(",")[4]) < 0.05  # the step-0 point of the curve
-    assert "ablation=detached" in (tmp_path / "summary.md").read_text()
+    assert "ablation=linear_photos" in (tmp_path / "summary.md").read_text()
     assert "Best accuracy/time frontier" in proc.stdout
 
 

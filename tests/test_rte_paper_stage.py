@@ -39,7 +39,7 @@ def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     same medium by > 6 dB (measured 9.0-9.6): only a light field that carries the scattered
     light, with the right lobe and albedo, gets there."""
     proc = run_train(tmp_path, tiny_dataset.parent, "scene.medium.g=0.7", PAPER,
-                     stage="forward")
+                     "budget.rte.steps=300", stage="forward")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_csv_metrics(only_run_dir(tmp_path, "forward"))
     ours = last_value(rows, "val/psnr")
@@ -67,7 +67,7 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"
     proc = run_train(out / "paper", tiny_dataset.parent, PAPER, f"init.ea_ckpt={ea_ckpt}",
-                     stage="rte")
+                     "budget.rte.steps=300", stage="rte")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"Stage 2 modulates the EA density of {ea_ckpt}" in proc.stdout + proc.stderr
     run = only_run_dir(out / "paper", "rte")

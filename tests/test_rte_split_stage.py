@@ -17,20 +17,24 @@ from nrt.modules.voxel_medium import VoxelMedium
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
-FORWARD_PSNR_MIN = 32.0
+FORWARD_PSNR_MIN = 33.5
 """Held-out PSNR (dB, log tonemap, the preset's 2 validation views) that forward mode must
-reach on the tiny default scene in its 300 steps. Measured over seeds 0-2 (2026-11-23):
-see :func:`test_forward_mode_reproduces_the_photos`."""
+reach on the tiny default scene in 300 steps; measured: see
+:func:`test_forward_mode_reproduces_the_photos`."""
 
 
 def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     """Forward mode: the true medium, only the scattered light learns (transport objective,
     no photos). The photo objective's image of the held-out views must reproduce Mitsuba's
     photos to :data:`FORWARD_PSNR_MIN` dB and beat the no-scattering prediction ``T E(v)``
-    by > 6 dB. Measured (seeds 0-2): 34.6-34.8 dB against 25.4 dB for ``T E(v)`` and 26.8
-    dB for the first scattering alone (no learned light), so the bound needs the scattered
-    light; the exit prediction (``T E(v)`` plus the light field at the box) 28.7-28.9 dB."""
-    proc = run_train(tmp_path, tiny_dataset.parent, stage="forward")
+    by > 6 dB. Measured (300 steps, seeds 0-2, 2026-11-23): 34.79-34.86 dB against 25.40
+    dB for ``T E(v)``, 25.72 dB for the background alone and 26.8 dB for the first
+    scattering without learned light (measured once, 4 test views), so the bound needs the
+    scattered light, with a margin of ~20 times the seeds' spread (0.07 dB). The exit
+    prediction (``T E(v)`` plus the light field where the rays leave the box) reached
+    28.61-28.71 dB; > 2 dB over ``T E(v)`` is asserted. The paper's formulation reaches
+    33.4-33.8 dB and an exit PSNR of 20-21.7 dB on this scene (test_rte_paper_stage.py)."""
+    proc = run_train(tmp_path, tiny_dataset.parent, "budget.rte.steps=300", stage="forward")
     assert proc.returncode == 0, proc.stderr[-3000:]
     rows = read_csv_metrics(only_run_dir(tmp_path, "forward"))
     ours = last_value(rows, "val/psnr")
@@ -46,8 +50,11 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
     """``stage=ea`` then ``stage=rte`` through the CLI: stage 2 finds the EA checkpoint
     itself and says so, logs the time and loss of each objective and the property MSEs from
     step 0, and moves the medium toward the truth. Measured at the tiny preset (900 steps,
-    2026-11-23): see the bounds below. The held-out VRE PSNR stays at the photos' level
-    (34.7-35.2 dB; T E(v) 25.4)."""
+    stage-2 seeds 0-2 from one EA run, 2026-11-23): end/start MSE sigma_t 0.804-0.808,
+    sigma_a 0.43-0.45, g 0.07-0.12, held-out PSNR 34.96-35.02 dB (T E(v) 25.4). The seeds
+    scatter by ~0.002 in the sigma_t ratio, so 0.85 is far outside their noise and far
+    below 1; the tiny scene's 16 views of 32 x 32 pixels do not pin the medium down further
+    (docs/stage2.md)."""
     out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"
@@ -61,7 +68,7 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
     assert [float(r["step"]) for r in rows if r.get("val/mse_g_x100")][0] == 0
     ratio = {k: last_value(rows, f"val/mse_{k}_x100") / values(rows, f"val/mse_{k}_x100")[0]
              for k in PROPERTIES}
-    assert ratio["sigma_t"] < SIGMA_T_RATIO_MAX and ratio["sigma_a"] < 1.0 and \
+    assert ratio["sigma_t"] < SIGMA_T_RATIO_MAX and ratio["sigma_a"] < 0.6 and \
         ratio["g"] < 0.5, ratio
     assert last_value(rows, "val/psnr") > 33.0, last_value(rows, "val/psnr")
     assert values(rows, "train/medium_resolution")[-1] == 16  # coarse to fine: 4 -> 8 -> 16
@@ -76,7 +83,7 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
                                    atol=1e-6)
 
 
-SIGMA_T_RATIO_MAX = 0.9
+SIGMA_T_RATIO_MAX = 0.85
 """End/start sigma_t MSE of the tiny CLI run; measured: see the test's docstring."""
 
 

@@ -1,0 +1,98 @@
+"""Stage 2 as the quickstart runs it, on several scenes: does the medium improve on its EA start?
+
+For each scene: the EA checkpoint (``--ea NAME=PATH``, else the newest EA run of that scene
+under ``outputs/``, else ``nrt-train stage=ea`` is run first), then ``nrt-train stage=rte``
+at the preset's defaults through the real CLI in ``--out``. Prints one row per scene: the
+property MSEs x100 at step 0 and at the end, the end/start ratios, the held-out PSNR of the
+photo objective's image, training seconds and steps. Every scene is reported, none chosen.
+
+    python -m benchmarks.stage2_scenes [--scenes default,default_seed1,...] [--ea NAME=PATH ...]
+        [--preset cpu] [--out DIR] [override ...]
+
+Scenes: ``default`` (the settings were chosen on it), ``default_seed1..3`` (the default
+scene drawn from other seeds), ``varying_g`` (a g field) and ``heldout`` (an explicit
+elements list written once and never tuned on).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+SCENES = {
+    "default": [],
+    "default_seed1": ["scene.seed=1", "scene.name=default_seed1"],
+    "default_seed2": ["scene.seed=2", "scene.name=default_seed2"],
+    "default_seed3": ["scene.seed=3", "scene.name=default_seed3"],
+    "varying_g": ["scene=varying_g"],
+    "heldout": ["scene=heldout"],
+}
+PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
+
+
+def output_dir() -> Path:
+    return Path(os.environ.get("NRT_OUTPUT_DIR", "outputs")).resolve()
+
+
+def newest_checkpoint(scene: str) -> Path | None:
+    runs = sorted((output_dir() / scene / "ea").glob("*/checkpoints/last.ckpt"),
+                  key=lambda p: p.stat().st_mtime)
+    return runs[-1] if runs else None
+
+
+def train(stage: str, out: Path, preset: str, overrides: list[str]) -> Path:
+    """``nrt-train`` through the CLI, runs under ``out``; returns the new run folder."""
+    cmd = [sys.executable, "-m", "nrt.cli.train", f"stage={stage}", f"preset={preset}",
+           "logger=[tensorboard,csv]", f"paths.data_dir={output_dir() / 'datasets'}",
+           "trainer.enable_progress_bar=false", "render.progress=false", *overrides]
+    before = set(out.glob(f"*/{stage}/*"))
+    proc = subprocess.run(cmd, env={**os.environ, "NRT_OUTPUT_DIR": str(out)},
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    (run,) = set(out.glob(f"*/{stage}/*")) - before
+    return run
+
+
+def series(run: Path, key: str) -> list[float]:
+    with open(run / "csv" / "metrics.csv") as f:
+        return [float(r[key]) for r in csv.DictReader(f) if r.get(key)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--ea", action="append", default=[], help="NAME=path/to/last.ckpt")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "stage2")
+    parser.add_argument("overrides", nargs="*", help="extra Hydra overrides for stage 2")
+    args = parser.parse_args()
+    given = dict(item.split("=", 1) for item in args.ea)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in args.scenes.split(","):
+        scene = SCENES[name]
+        ckpt = given.get(name) or newest_checkpoint(name)
+        if ckpt is None:
+            ckpt = train("ea", output_dir(), args.preset, scene) / "checkpoints" / "last.ckpt"
+        run = train("rte", args.out, args.preset,
+                    [*scene, f"init.ea_ckpt={ckpt}", *args.overrides])
+        mse = {k: series(run, f"val/mse_{k}_x100") for k in PROPERTIES}
+        rows.append((name, mse, series(run, "val/psnr")[-1], series(run, "time/wall_s")[-1],
+                     int(max(series(run, "step"))) + 1))
+        print(f"{name}: {run}", flush=True)
+    print("\n| scene | " + " | ".join(f"{k} start -> end (ratio)" for k in PROPERTIES)
+          + " | PSNR | seconds | steps |")
+    print("|---|" + "---:|" * (len(PROPERTIES) + 3))
+    for name, mse, psnr, seconds, steps in rows:
+        cells = [f"{v[0]:.3f} -> {v[-1]:.3f} ({v[-1] / v[0]:.2f})" if v else "-"
+                 for v in mse.values()]
+        print(f"| {name} | " + " | ".join(cells) + f" | {psnr:.2f} | {seconds:.0f} | {steps} |")
+
+
+if __name__ == "__main__":
+    main()
