@@ -102,7 +102,7 @@ class SplitRTEModule(RadiativeTransferStage):
         if isinstance(self.medium, VoxelMedium) and self.hparams.density["source"] == "ea" \
                 and not self._baked and self._trainer is not None and \
                 self.trainer.datamodule is not None:
-            ea = load_ea_field(self._ea_ckpt).to(self.device)
+            ea = load_ea_field(self._ea_ckpt).to(self.medium.density.device)
             self.medium.set_density(ea.density)  # a resumed run loads the same values
             self._baked = True
             log.info("Stage 2 modulates the EA density of %s, baked on %d^3 cells",

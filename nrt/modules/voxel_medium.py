@@ -76,7 +76,7 @@ class VoxelMedium(NeuralMedium):
     def set_density(self, density) -> None:
         """Bake ``density(points (N, 3)) -> (N,)`` (the EA field's) at the cell centres."""
         r = self.density.shape[0]
-        pts = cell_centres(r, self.bbox).reshape(-1, 3)
+        pts = cell_centres(r, self.bbox.to(self.density.device)).reshape(-1, 3)
         values = torch.cat([density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
         self.density.copy_(values.reshape(r, r, r, 1).clamp_min(0.0))
 
