@@ -12,6 +12,8 @@ first steps after a doubling move every cell by about the learning rate, downhil
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from nrt.errors import NrtError
@@ -39,3 +41,11 @@ def resample_parameter(param: torch.nn.Parameter, optimizer: torch.optim.Optimiz
     if optimizer is not None:
         optimizer.state.pop(param, None)
     param.data = resample_cells(param.data, resolution)
+
+
+def decaying_lr(optimizer: torch.optim.Optimizer, final_factor: float,
+                progress: Callable[[], float]) -> torch.optim.lr_scheduler.LambdaLR:
+    """Every group's learning rate times ``final_factor ** progress()``: an exponential decay
+    over the run's steps or its ``budget_s`` (stepped once per training step). A constant
+    rate leaves the voxel grids walking in their gradients' noise at the end of a run."""
+    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: final_factor ** progress())

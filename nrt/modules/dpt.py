@@ -11,11 +11,12 @@ replay backpropagation), not the differential ratio tracking of the paper's base
 - Each step renders one random training view at ``spp`` with gradients; the loss is the
   MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
   Dr.Jit; ``dr.backward`` gives the grid gradients, which become the ``.grad`` of torch
-  parameters (non-finite entries counted and zeroed), and torch's Adam steps. Values are
+  parameters (non-finite entries counted and zeroed), and torch's Adam steps, its rate
+  decaying exponentially to ``lr_final_factor`` of ``lr`` over the run. Values are
   clamped after each step: ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
 - Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
   ``upsample_at`` of the run (of its steps, or of ``budget_s`` when that comes first)
-  until ``resolutions[-1]``; Adam's moments are resampled with them. With ``ea_detail``
+  until ``resolutions[-1]``; Adam's moments restart at each doubling. With ``ea_detail``
   sigma_t also gets the EA density's detail of the finer grid added (what the coarser
   grid could not hold): worth it when the first grid is too coarse for the medium (the
   ``tiny`` preset's 8^3), not when the EA density's own fine detail is noisier than its
@@ -41,7 +42,7 @@ from torch import nn
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
 from nrt.errors import NrtError
-from nrt.modules.coarse_to_fine import resample_parameter, resolution_at
+from nrt.modules.coarse_to_fine import decaying_lr, resample_parameter, resolution_at
 from nrt.modules.tensorboard import log_image
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, resample_cells
@@ -56,7 +57,8 @@ class DPTModule(L.LightningModule):
 
     def __init__(self, effects: dict, density: dict, resolutions: list[int],
                  upsample_at: list[float], spp: int = 8, val_spp: int = 32,
-                 lr: float = 0.02, init_albedo: float = 0.8, max_sigma_t: float = 100.0,
+                 lr: float = 0.02, lr_final_factor: float = 0.1, init_albedo: float = 0.8,
+                 max_sigma_t: float = 100.0,
                  phase_g: float | None = None, property_resolution: int | None = None,
                  ea_detail: bool = False, seed: int = 0):
         super().__init__()
@@ -140,7 +142,9 @@ class DPTModule(L.LightningModule):
             self.sigma_t.device)
 
     def configure_optimizers(self):
-        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        opt = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        sched = decaying_lr(opt, self.hparams.lr_final_factor, self._progress)
+        return [opt], [{"scheduler": sched, "interval": "step"}]
 
     # -------------------------------------------------------------- Mitsuba
     def property_arrays(self) -> dict[str, np.ndarray]:
@@ -191,11 +195,15 @@ class DPTModule(L.LightningModule):
         return torch.from_numpy(self.renderer().render(c2w.cpu().numpy(), spp, seed))
 
     # --------------------------------------------------------------- training
-    def _resolution_now(self) -> int:
-        """Coarse to fine over the run's course (steps, or seconds of a ``budget_s``)."""
+    def _progress(self) -> float:
+        """The run's course in [0, 1] (steps, or seconds of a ``budget_s``)."""
         from nrt.callbacks import training_progress
 
-        return resolution_at(training_progress(self.trainer), self.hparams.resolutions,
+        return training_progress(self.trainer) if self._trainer is not None else 0.0
+
+    def _resolution_now(self) -> int:
+        """Coarse to fine over the run's course."""
+        return resolution_at(self._progress(), self.hparams.resolutions,
                              self.hparams.upsample_at)
 
     @torch.no_grad()
@@ -251,6 +259,7 @@ class DPTModule(L.LightningModule):
         opt.zero_grad(set_to_none=True)
         value = self.image_loss(frame, seed=self.global_step)
         opt.step()
+        self.lr_schedulers().step()
         self._clamp()
         self.log("train/loss", value, prog_bar=True)
         self.log("time/step_render_s", time.perf_counter() - start)

@@ -42,7 +42,12 @@ from nrt.losses.observation import exit_radiance
 from nrt.losses.photo import photo_loss
 from nrt.losses.transport import transport_loss
 from nrt.losses.vre import render_view_rays, transmitted_background
-from nrt.modules.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.coarse_to_fine import (
+    check_schedule,
+    decaying_lr,
+    resample_parameter,
+    resolution_at,
+)
 from nrt.modules.ea import load_ea_field
 from nrt.modules.rte import RadiativeTransferStage
 from nrt.modules.sh_light_field import SHGridLightField
@@ -114,11 +119,7 @@ class SplitRTEModule(RadiativeTransferStage):
         if isinstance(self.medium, VoxelMedium):
             groups.append({"params": [p for p in self.medium.parameters()], "lr": lr["medium"]})
         opt = torch.optim.Adam(groups)
-        factor = self.hparams.lr_final_factor
-
-        def decay(step: int) -> float:  # over the run's steps, or its budget_s
-            return factor ** self.progress()
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, decay)
+        sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
     def progress(self) -> float:
