@@ -22,7 +22,12 @@ from nrt.data import mitsuba_backend
 from nrt.errors import NrtError
 from nrt.losses.transport import scattered_target, transport_loss
 from nrt.losses.vre import render_view_rays
-from nrt.modules.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.coarse_to_fine import (
+    check_schedule,
+    decaying_lr,
+    resample_parameter,
+    resolution_at,
+)
 from nrt.modules.medium import GroundTruthMedium, NeuralMedium
 from nrt.modules.sh_light_field import SHGridLightField
 from nrt.modules.voxel_medium import VoxelMedium
@@ -292,6 +297,12 @@ def test_coarse_to_fine_schedule_and_restarted_moments():
     torch.testing.assert_close(grid.mean(), before.mean(), rtol=1e-5, atol=1e-6)
     grid.grad = torch.ones_like(grid)
     opt.step()  # a fresh state of the new shape
+    progress = [0.0]
+    sched = decaying_lr(opt, 0.1, lambda: progress[0])
+    for p, factor in ((0.5, 0.1 ** 0.5), (1.0, 0.1)):
+        progress[0] = p
+        sched.step()
+        assert opt.param_groups[0]["lr"] == pytest.approx(0.1 * factor)
 
 
 @pytest.mark.slow  # ~25 s: two Mitsuba renders and a 3 x 3 supersampled reference
