@@ -8,6 +8,8 @@ import time
 import lightning as L
 import torch
 
+from nrt.errors import ConfigError
+
 log = logging.getLogger(__name__)
 
 
@@ -22,7 +24,8 @@ class WallClock(L.Callback):
 
     def __init__(self, budget_s: float | None = None):
         if budget_s is not None and budget_s <= 0:
-            raise ValueError(f"budget_s must be a positive number of seconds, got {budget_s}")
+            raise ConfigError(f"budget_s must be a positive number of seconds (or null), got "
+                              f"{budget_s}.")
         self.budget_s = budget_s
         self.elapsed_before = 0.0
         self._start: float | None = None

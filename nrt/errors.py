@@ -15,3 +15,8 @@ class DatasetError(NrtError):
 
 class SceneError(NrtError):
     """A scene specification is inconsistent or out of range."""
+
+
+class ConfigError(NrtError, ValueError):
+    """A config key holds a value a component cannot take (a count below 1, an unknown
+    name). Also a ``ValueError``, which components raised for these before."""

@@ -11,6 +11,16 @@ from __future__ import annotations
 
 import torch
 
+from nrt.errors import ConfigError
+
+TONEMAPS = ("log", "linear")
+
+
+def check_tonemap(tonemap: str) -> None:
+    """Refuse a ``losses.photo_tonemap`` other than :data:`TONEMAPS`."""
+    if tonemap not in TONEMAPS:
+        raise ConfigError(f"losses.photo_tonemap must be 'log' or 'linear', got '{tonemap}'.")
+
 
 def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor | float,
                tonemap: str = "log") -> torch.Tensor:
@@ -19,6 +29,5 @@ def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor
     if tonemap == "log":
         return torch.mean((torch.log1p(rendered.clamp_min(0) / scale)
                            - torch.log1p(photos.clamp_min(0) / scale)) ** 2)
-    if tonemap == "linear":
-        return torch.mean(((rendered - photos) / scale) ** 2)
-    raise ValueError(f"losses.photo_tonemap must be 'log' or 'linear', got '{tonemap}'")
+    check_tonemap(tonemap)
+    return torch.mean(((rendered - photos) / scale) ** 2)

@@ -42,7 +42,12 @@ from torch import nn
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
 from nrt.errors import NrtError
-from nrt.modules.coarse_to_fine import decaying_lr, resample_parameter, resolution_at
+from nrt.modules.coarse_to_fine import (
+    check_schedule,
+    decaying_lr,
+    resample_parameter,
+    resolution_at,
+)
 from nrt.modules.tensorboard import log_image
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, resample_cells
@@ -64,10 +69,7 @@ class DPTModule(L.LightningModule):
         super().__init__()
         self.save_hyperparameters()
         self.automatic_optimization = False
-        if len(upsample_at) != len(resolutions) - 1:
-            raise NrtError(f"model.upsample_at {list(upsample_at)} needs one fraction per "
-                           f"doubling of model.resolutions {list(resolutions)} (i.e. "
-                           f"{len(resolutions) - 1}).")
+        check_schedule(resolutions, upsample_at, "budget.dpt.resolutions / upsample_at")
         if density.get("source") != "ea":
             raise NrtError("stage=dpt starts from the EA density (init=ea); init.source="
                            f"'{density.get('source')}' is not supported.")

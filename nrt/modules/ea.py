@@ -15,7 +15,7 @@ import lightning as L
 import numpy as np
 import torch
 
-from nrt.errors import NrtError
+from nrt.errors import ConfigError, NrtError
 from nrt.metrics import density_agreement, psnr
 from nrt.modules.ea_field import EAField
 from nrt.modules.tensorboard import log_image
@@ -58,8 +58,8 @@ class EAModule(L.LightningModule):
         super().__init__()
         self.save_hyperparameters()
         if loss not in PHOTOMETRIC_LOSSES:
-            raise ValueError(f"losses.photometric must be one of {sorted(PHOTOMETRIC_LOSSES)}, "
-                             f"got '{loss}'")
+            raise ConfigError(f"losses.photometric must be one of {sorted(PHOTOMETRIC_LOSSES)}, "
+                              f"got '{loss}'.")
         self.photometric = PHOTOMETRIC_LOSSES[loss]
         self.field = EAField(**field)
         self._baseline_psnr: dict[int, float] = {}

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from nrt.errors import ConfigError
 from nrt.modules.activations import DENSITY_ACTIVATIONS
 from nrt.modules.hash_grid import HashGrid
 
@@ -39,12 +40,12 @@ class EAField(nn.Module):
                  geo_features: int = 15, density_activation: str = "trunc_exp",
                  density_bias: float = -1.0):
         super().__init__()
+        if density_activation not in DENSITY_ACTIVATIONS:
+            raise ConfigError(f"model.field.density_activation must be one of "
+                              f"{sorted(DENSITY_ACTIVATIONS)}, got '{density_activation}'.")
         self.encoding = HashGrid(**(hash_grid or {}))
         self.density_net = mlp(self.encoding.output_dim, hidden, 1 + geo_features, layers)
         self.color_net = mlp(geo_features + 9, hidden, 3, layers)
-        if density_activation not in DENSITY_ACTIVATIONS:
-            raise ValueError(f"model.field.density_activation must be one of "
-                             f"{sorted(DENSITY_ACTIVATIONS)}, got '{density_activation}'")
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from nrt.errors import ConfigError
 from nrt.modules.siren import Siren
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, sample_grid
@@ -64,8 +65,8 @@ def scene_channels(effects: dict) -> int:
 def phase_head(effects: dict) -> str:
     phase = effects.get("phase", "hg")
     if phase not in PHASE_HEADS:
-        raise ValueError(f"scene.effects.phase must be one of {sorted(PHASE_HEADS)}, "
-                         f"got '{phase}'")
+        raise ConfigError(f"scene.effects.phase must be one of {sorted(PHASE_HEADS)}, "
+                          f"got '{phase}'.")
     return PHASE_HEADS[phase]
 
 
@@ -100,7 +101,8 @@ class NeuralMedium(Medium):
                  grid_resolution: int = 32, init_albedo: float = 0.8):
         super().__init__(effects)
         if not 0.0 < init_albedo < 1.0:
-            raise ValueError(f"model.medium.init_albedo must lie in (0, 1), got {init_albedo}")
+            raise ConfigError(f"model.medium.init_albedo must lie in (0, 1), got "
+                              f"{init_albedo}.")
         self.density_field = density
         # chromatic: a (3), s (3); grey: t (1), albedo logits b (3); then h (g field)
         self.g_index = 6 if self.channels == 3 else 4
@@ -110,8 +112,8 @@ class NeuralMedium(Medium):
         elif modulation == "grid":
             self.modulation = _GridModulation(grid_resolution, n_out)
         else:
-            raise ValueError(f"model.medium.modulation must be 'siren' or 'grid', got "
-                             f"'{modulation}'")
+            raise ConfigError(f"model.medium.modulation must be 'siren' or 'grid', got "
+                              f"'{modulation}'.")
         self.g_shared = nn.Parameter(torch.zeros(())) if self.phase == "shared" else None
         # start: sigma_t = rho, albedo = init_albedo (a, s: exp(a) + exp(s) = 1)
         offsets = ([math.log(1 - init_albedo)] * 3 + [math.log(init_albedo)] * 3

@@ -39,7 +39,7 @@ import torch
 from nrt.callbacks import training_progress
 from nrt.errors import NrtError
 from nrt.losses.observation import exit_radiance
-from nrt.losses.photo import photo_loss
+from nrt.losses.photo import check_tonemap, photo_loss
 from nrt.losses.transport import transport_loss
 from nrt.losses.vre import render_view_rays, transmitted_background
 from nrt.modules.coarse_to_fine import (
@@ -90,6 +90,7 @@ class SplitRTEModule(RadiativeTransferStage):
                            "rte/bc/obs/vre, are experiment=rte_paper).")
         check_schedule(medium["resolutions"], medium["upsample_at"],
                        "budget.rte.medium_resolutions / medium_upsample_at")
+        check_tonemap(photo_tonemap)
         # isotropic in-scattering reads band 0 only: the higher bands would be computed for
         # nothing (DESIGN.md: simulate only what the scene calls for)
         degree = 0 if effects.get("phase") == "isotropic" else int(light_field["degree"])

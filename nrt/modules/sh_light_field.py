@@ -22,6 +22,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from nrt.errors import ConfigError
 from nrt.physics.sh import num_coefficients, phase_band_factors, sh_basis
 from nrt.physics.volume import sample_grid
 
@@ -32,8 +33,8 @@ class SHGridLightField(nn.Module):
     def __init__(self, degree: int = 2, resolution: int = 16):
         super().__init__()
         if degree < 0 or resolution < 2:
-            raise ValueError(f"model.light_field needs degree >= 0 and resolution >= 2, got "
-                             f"{degree} and {resolution}")
+            raise ConfigError(f"model.light_field needs degree >= 0 and resolution >= 2, got "
+                              f"{degree} and {resolution}.")
         self.degree = degree
         k = 3 * num_coefficients(degree)
         self.coefficients = nn.Parameter(torch.zeros(resolution, resolution, resolution, k))

@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from nrt.errors import ConfigError
+
 
 class Siren(nn.Module):
     """``in_dim -> out_dim`` through ``layers`` sine layers of width ``hidden``."""
@@ -24,7 +26,8 @@ class Siren(nn.Module):
                  omega_0: float = 30.0, omega_hidden: float = 30.0):
         super().__init__()
         if layers < 1 or hidden < 1:
-            raise ValueError(f"a SIREN needs layers >= 1 and hidden >= 1, got {layers}, {hidden}")
+            raise ConfigError(f"a SIREN needs layers >= 1 and hidden >= 1, got {layers}, "
+                              f"{hidden}.")
         dims = [in_dim] + [hidden] * layers
         self.linears = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:],
                                                                        strict=True))
