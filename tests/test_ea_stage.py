@@ -4,6 +4,7 @@ cases (dense and near-empty media) that must never put NaN or Inf in the paramet
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 import lightning as L
 import numpy as np
@@ -19,6 +20,7 @@ from conftest import (
 )
 from omegaconf import OmegaConf
 
+from nrt.cli.run_dirs import discard_failed_start, new_run_dir
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
 from nrt.modules.ea import EAModule
@@ -79,6 +81,29 @@ def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
     proc = run_train(tmp_path, tiny_dataset.parent, "resume=true")
     assert proc.returncode == 2
     assert "nrt: error: resume=True" in proc.stderr and "Traceback" not in proc.stderr
+    assert list(tmp_path.iterdir()) == []  # no empty run folder left behind
+
+
+def test_a_failed_start_removes_only_what_it_wrote(tmp_path):
+    """A folder this process named goes (with the folders above it left empty), unless it
+    saved a checkpoint; a resumed run keeps everything but this start's config copy."""
+    old = tmp_path / "default" / "ea" / "old"
+    (old / ".hydra" / "resumed-x").mkdir(parents=True)
+    (old / "checkpoints").mkdir()
+    (old / "checkpoints" / "last.ckpt").write_text("trained before")
+    start = time.time() + 1.0  # this start began after the checkpoint was saved
+    discard_failed_start(old, ".hydra/resumed-x", start, tmp_path)
+    assert (old / "checkpoints" / "last.ckpt").is_file() and (old / ".hydra").is_dir()
+    assert not (old / ".hydra" / "resumed-x").exists()
+    fresh = Path(new_run_dir(tmp_path / "default" / "rte"))
+    (fresh / ".hydra").mkdir(parents=True)
+    discard_failed_start(fresh, ".hydra/", time.time(), tmp_path)
+    assert sorted(p.name for p in (tmp_path / "default").iterdir()) == ["ea"]
+    trained = Path(new_run_dir(tmp_path / "default" / "dpt"))
+    (trained / "checkpoints").mkdir(parents=True)
+    (trained / "checkpoints" / "last.ckpt").write_text("saved by this start")
+    discard_failed_start(trained, ".hydra/", start - 1.0, tmp_path)
+    assert (trained / "checkpoints" / "last.ckpt").is_file()
 
 
 class _AssertFinite(L.Callback):

@@ -4,12 +4,16 @@ newest one with a checkpoint when resuming, so a resumed run continues in its ow
 A resumed run must not overwrite what the first one wrote: its Hydra config goes to
 ``.hydra/<tag>/`` and its CSV log to ``csv/<tag>/``, with ``tag = resumed-<timestamp>``
 (:func:`resume_tag`); TensorBoard adds new event files beside the old ones.
+
+A start that fails (a config mistake, a missing checkpoint) leaves nothing behind:
+:func:`discard_failed_start` removes the folder it created, or a resumed run's config copy.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -17,13 +21,18 @@ LAST_CKPT = Path("checkpoints") / "last.ckpt"
 RUN_FILE = "run.json"
 """What nrt-train records about a run (stage, scene, dataset, environments, exports)."""
 
+RESUMED_PREFIX = "resumed-"
+
 _chosen: dict[tuple[str, str], str] = {}
 _tags: dict[str, str] = {}
+_created: set[str] = set()  # absolute paths of the folders new_run_dir named
 
 
 def new_run_dir(base: str | Path) -> str:
     """``<base>/<timestamp>-<pid>``: unique, so runs never overwrite each other."""
-    return f"{base}/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}"
+    path = f"{base}/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}"
+    _created.add(os.path.abspath(path))
+    return path
 
 
 def latest_run_with_checkpoint(base: str | Path) -> Path | None:
@@ -49,14 +58,40 @@ def resume_tag(resume) -> str:
     """Resolver ``${nrt_resume_tag:resume}``: ``""`` for a new run, else ``resumed-<time>``."""
     if resume in (None, False):
         return ""
-    return _tags.setdefault(str(resume), f"resumed-{time.strftime('%Y-%m-%d_%H-%M-%S')}")
+    return _tags.setdefault(str(resume),
+                            f"{RESUMED_PREFIX}{time.strftime('%Y-%m-%d_%H-%M-%S')}")
+
+
+def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: float,
+                         root: str | Path) -> None:
+    """Undo what a start that failed wrote into ``run_dir``, unless it saved a checkpoint
+    after ``since`` (then it trained, and its folder is a run): a folder that this process
+    named (:func:`new_run_dir`) goes, with the folders above it left empty, up to ``root``;
+    in a resumed run's folder only this start's config copy (``config_subdir``,
+    ``.hydra/resumed-<time>``) goes."""
+    run_dir = Path(os.path.abspath(run_dir))
+    if any(p.stat().st_mtime >= since for p in (run_dir / "checkpoints").glob("*.ckpt")):
+        return
+    if str(run_dir) in _created:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        root, parent = Path(os.path.abspath(root)), run_dir.parent
+        while root in parent.parents and not any(parent.iterdir()):
+            parent.rmdir()
+            parent = parent.parent
+    elif config_subdir and Path(config_subdir).name.startswith(RESUMED_PREFIX):
+        shutil.rmtree(run_dir / config_subdir, ignore_errors=True)
+
+
+def read_run_info(run_dir: str | Path) -> dict:
+    """The run folder's ``run.json`` ({} where there is none yet)."""
+    path = Path(run_dir) / RUN_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def write_run_info(run_dir: str | Path, **info) -> None:
     """Merge ``info`` into the run folder's ``run.json``."""
-    path = Path(run_dir) / RUN_FILE
-    old = json.loads(path.read_text()) if path.is_file() else {}
-    path.write_text(json.dumps({**old, **info}, indent=1))
+    (Path(run_dir) / RUN_FILE).write_text(json.dumps({**read_run_info(run_dir), **info},
+                                                     indent=1))
 
 
 def eval_dir(run, output_dir: str) -> str:
