@@ -225,9 +225,12 @@ def test_eval_of_a_trained_run_and_export_at_a_chosen_resolution(tiny_sweep, tin
 def test_budget_s_stops_training_on_training_seconds(tiny_ea_run, tiny_dataset, tmp_path):
     ea_ckpt = next((tiny_ea_run[0] / "default" / "ea").glob("*/checkpoints/last.ckpt"))
     proc = run_train(tmp_path, tiny_dataset.parent, "budget_s=4", "budget.rte.steps=100000",
-                     "budget.val_every=5", f"init.ea_ckpt={ea_ckpt}", stage="rte")
+                     "budget.val_every=5", f"init.ea_ckpt={os.path.relpath(ea_ckpt)}",
+                     stage="rte")  # a relative init.ea_ckpt is recorded as an absolute path
     assert proc.returncode == 0, proc.stderr[-2000:]
     run = next((tmp_path / "default" / "rte").iterdir())
+    assert json.loads((run / "run.json").read_text())["ea_ckpt"] == str(ea_ckpt.resolve())
+    assert f"ea_ckpt: {ea_ckpt.resolve()}" in (run / ".hydra" / "config.yaml").read_text()
     rows = read_csv_metrics(run)
     wall, steps = values(rows, "time/wall_s"), values(rows, "step")
     assert 4.0 <= max(wall) < 30.0 and max(steps) < 100000

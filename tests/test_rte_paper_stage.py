@@ -4,6 +4,8 @@ Mitsuba, ``stage=ea`` then ``stage=rte`` via the real CLI, the terms a scene's e
 switch on and off, and hard cases that must never put NaN or Inf anywhere. The default
 stage 2 (split) has its own tests in ``test_rte_split_stage.py``."""
 
+import re
+
 import hydra
 import lightning as L
 import numpy as np
@@ -91,19 +93,62 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     ("dpt", (), "stage=dpt starts from the EA density"),
     ("rte", ("init=none", "scene.effects.max_scattering_order=1"), "max_scattering_order=1"),
     ("forward", ("scene.effects.max_scattering_order=0",), "max_scattering_order=0"),
+    ("ea", ("budget.ea.steps=-3",), "budget.ea.steps=-3"),
+    ("ea", ("budget_s=-5",), "budget_s=-5"),
+    ("ea", ("model.field.density_activation=relu",), "model.field.density_activation"),
 ])
 def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, needle):
     """What the config alone decides (no EA run to start from; stage 2 on photos of
-    truncated transport) is refused with ``nrt: error:`` and exit status 2 before the
-    dataset is rendered or loaded: the data folder (empty here, so the scene would have
-    to be rendered first) stays untouched."""
-    data_root = tmp_path / "datasets"
-    proc = run_train(tmp_path / "out", data_root, *overrides, stage=stage)
+    truncated transport; counts below 1; unknown names) is refused with ``nrt: error:``
+    and exit status 2 before the dataset is rendered or loaded: the data folder (empty
+    here, so the scene would have to be rendered first) stays untouched, and the failed
+    start leaves no run folder behind."""
+    data_root, out = tmp_path / "datasets", tmp_path / "out"
+    out.mkdir()
+    proc = run_train(out, data_root, *overrides, stage=stage)
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert f"nrt: error: {needle}" in proc.stderr or (
         "nrt: error:" in proc.stderr and needle in proc.stderr), proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr
     assert not data_root.exists(), list(data_root.rglob("*"))
+    assert list(out.iterdir()) == []
+
+
+@pytest.mark.parametrize(("overrides", "needle"), [
+    (("stage=rte", "init.ea_ckpt=no/such.ckpt"), "init.ea_ckpt='no/such.ckpt'"),
+    (("budget.val_every=0",), "budget.val_every=0"),
+    (("budget.val_views=-1",), "budget.val_views=-1"),
+    (("stage.steps=0",), "stage.steps=0"),
+    (("budget.ea.hash_levels=1.5",), "budget.ea.hash_levels=1.5"),
+    (("stage=rte", "init=none", "budget.rte.rays_per_batch=0"), "budget.rte.rays_per_batch=0"),
+    (("stage=rte", "budget.rte.medium_resolutions=[4,-8]"), "budget.rte.medium_resolutions"),
+    (("stage=rte", "budget.rte.light_warmup=1"), "budget.rte.light_warmup=1"),
+    (("stage=rte", "init=none", "budget.rte.medium_upsample_at=[0.6,0.4]"), "upsample_at"),
+    (("stage=dpt", "init=none", "budget.dpt.upsample_at=[1.5]"), "upsample_at"),
+    (("losses.photometric=l1",), "losses.photometric"),
+    (("stage=rte", "init=none", "losses.photo_tonemap=gamma"), "losses.photo_tonemap"),
+    (("stage=rte", "init=none", PAPER, "model.medium.modulation=mlp"), "model.medium.modulation"),
+    (("stage=rte", "init=none", PAPER, "model.medium.init_albedo=1.5"), "init_albedo"),
+    (("stage=rte", "init=none", PAPER, "budget.rte.light_layers=0"), "budget.rte.light_layers"),
+    (("stage=rte", "init=none", "scene.effects.phase=rayleigh"), "scene.effects.phase"),
+])
+def test_config_mistakes_are_refused_before_data(overrides, needle):
+    """The checks nrt-train makes before it renders or loads data (the budget's counts,
+    the EA checkpoint, the model's own) refuse each mistake with an NrtError naming the
+    key, which the CLI prints as ``nrt: error:`` with status 2 (the test above)."""
+    from hydra.errors import InstantiationException
+
+    from nrt.cli.train import check_budget, resolve_ea_checkpoint
+    from nrt.errors import NrtError
+
+    cfg = compose_config("train", ["preset=tiny", *overrides])
+    with pytest.raises(NrtError, match=re.escape(needle)):
+        try:
+            check_budget(cfg)
+            resolve_ea_checkpoint(cfg)
+            hydra.utils.instantiate(cfg.model, _convert_="all")
+        except InstantiationException as exc:  # as nrt.cli.common.run_app unwraps it
+            raise exc.__cause__ from None
 
 
 # ------------------------------------------------------------------ in-process helpers

@@ -5,10 +5,13 @@ off, and hard cases that must never put NaN or Inf anywhere."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
 from conftest import last_value, only_run_dir, read_csv_metrics, run_train, values
+from omegaconf import OmegaConf
 from test_rte_paper_stage import HARD_CASES, bright_sun_sky, count_calls, fit
 
 from nrt.modules import rte_split
@@ -62,6 +65,9 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"Stage rte starts from EA checkpoint {ea_ckpt}" in proc.stdout + proc.stderr
     run = only_run_dir(out, "rte")
+    # the checkpoint it found is recorded, as an absolute path, where users look for it
+    assert json.loads((run / "run.json").read_text())["ea_ckpt"] == str(ea_ckpt.resolve())
+    assert OmegaConf.load(run / ".hydra" / "config.yaml").init.ea_ckpt == str(ea_ckpt.resolve())
     rows = read_csv_metrics(run)
     for name in ("photo", "transport"):
         assert values(rows, f"time/step_{name}_s") and values(rows, f"train/loss_{name}")
