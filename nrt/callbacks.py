@@ -9,17 +9,19 @@ import lightning as L
 import torch
 
 from nrt.errors import ConfigError
+from nrt.modules.schedules import RunClock
 
 log = logging.getLogger(__name__)
 
 
-class WallClock(L.Callback):
+class WallClock(L.Callback, RunClock):
     """Logs ``time/wall_s``, training seconds since the run started, next to the metrics;
     with ``budget_s``, stops training once that many seconds are spent (equal-time runs).
 
     Validation is not counted (the clock pauses while it runs), so accuracy-versus-time
     curves and budgets measure optimisation alone, whatever the validation cadence. The
     elapsed time is stored in checkpoints: a resumed run continues its clock and budget.
+    Schedules over the run's course read it (:func:`nrt.modules.schedules.training_progress`).
     """
 
     def __init__(self, budget_s: float | None = None):
@@ -72,17 +74,6 @@ class WallClock(L.Callback):
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.elapsed_before = float(state_dict.get("elapsed", 0.0))
-
-
-def training_progress(trainer) -> float:
-    """How far a run is, in [0, 1]: the larger of steps / max_steps and, with a time budget
-    (``budget_s``), training seconds / budget, so that schedules over a run's course
-    (coarse to fine, warm-ups) also complete in equal-time runs."""
-    done = trainer.global_step / max(int(trainer.max_steps), 1) if trainer.max_steps > 0 else 0.0
-    clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
-    if clock is not None and clock.budget_s:
-        done = max(done, clock.seconds() / clock.budget_s)
-    return min(done, 1.0)
 
 
 class NonFiniteGuard(L.Callback):

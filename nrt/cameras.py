@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from nrt.errors import NrtError
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -37,6 +39,19 @@ class Intrinsics:
     @property
     def camera_angle_x(self) -> float:
         return 2 * math.atan(0.5 * self.width / self.fx)
+
+
+def fov_x_deg(intr: Intrinsics, source: str = "The cameras") -> float:
+    """Horizontal field of view (degrees) of a pinhole camera for Mitsuba's
+    ``perspective`` sensor, which needs a centred principal point and square pixels;
+    ``source`` names the cameras in the error otherwise."""
+    if abs(intr.cx - intr.width / 2) > 1e-3 * intr.width or \
+            abs(intr.cy - intr.height / 2) > 1e-3 * intr.height or \
+            abs(intr.fx - intr.fy) > 1e-3 * intr.fx:
+        raise NrtError(f"{source}: rendering with Mitsuba needs square pixels and a centred "
+                       "principal point (cx = w/2, cy = h/2, fl_x = fl_y); these cameras have "
+                       f"fl=({intr.fx}, {intr.fy}), c=({intr.cx}, {intr.cy}).")
+    return math.degrees(intr.camera_angle_x)
 
 
 def camera_rays(c2w: torch.Tensor, intr: Intrinsics, x: torch.Tensor, y: torch.Tensor

@@ -20,10 +20,10 @@ from conftest import (
 )
 from omegaconf import OmegaConf
 
-from nrt.cli.run_dirs import discard_failed_start, new_run_dir
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
 from nrt.modules.ea import EAModule
+from nrt.run_dirs import discard_failed_start, new_run_dir
 
 
 def test_tiny_ea_trains_via_cli_and_beats_background(tiny_ea_run):

@@ -9,7 +9,7 @@
   (2.2 s against 0.19 s, measured with another process busy on one of two cores);
 - turns :class:`~nrt.errors.NrtError` into a one-paragraph message and exit status 2
   instead of a traceback, and removes the run folder such a failed start created
-  (:func:`nrt.cli.run_dirs.discard_failed_start`).
+  (:func:`nrt.run_dirs.discard_failed_start`).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
-from nrt.cli import run_dirs
+from nrt import run_dirs
 from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)

@@ -19,13 +19,13 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import run_app
-from nrt.cli.run_dirs import (
+from nrt.errors import NrtError
+from nrt.run_dirs import (
     LAST_CKPT,
     latest_run_with_checkpoint,
     read_run_info,
     write_run_info,
 )
-from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)
 

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from nrt.cli.run_dirs import RUN_FILE
 from nrt.errors import NrtError
+from nrt.run_dirs import RUN_FILE
 
 CURVES = ("val/mse_sigma_a_x100", "val/mse_sigma_s_x100", "val/mse_sigma_t_x100",
           "val/mse_g_x100", "val/psnr")

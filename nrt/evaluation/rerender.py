@@ -9,15 +9,14 @@ medium differs from the photos by Monte Carlo noise alone.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 import torch
 
+from nrt.cameras import fov_x_deg
 from nrt.data import mitsuba_backend
 from nrt.data.dataset import SceneDataset
-from nrt.errors import NrtError
 
 SEED_BASE = 7_000_003
 """Re-render seeds start here (datasets use seeds below 10^6)."""
@@ -26,19 +25,6 @@ SEED_BASE = 7_000_003
 def numpy_grids(grids: Mapping) -> dict[str, np.ndarray]:
     return {k: np.asarray(torch.as_tensor(grids[k]).detach().cpu(), np.float32)
             for k in ("sigma_a", "sigma_s", "g")}
-
-
-def fov_x_deg(data: SceneDataset) -> float:
-    """Horizontal field of view of the dataset's pinhole camera (centred, square pixels)."""
-    intr = data.intrinsics
-    if abs(intr.cx - intr.width / 2) > 1e-3 * intr.width or \
-            abs(intr.cy - intr.height / 2) > 1e-3 * intr.height or \
-            abs(intr.fx - intr.fy) > 1e-3 * intr.fx:
-        raise NrtError(f"Dataset '{data.root}': re-rendering with Mitsuba needs square pixels "
-                       "and a centred principal point (cx = w/2, cy = h/2, fl_x = fl_y) in "
-                       "transforms_test.json; this dataset has "
-                       f"fl=({intr.fx}, {intr.fy}), c=({intr.cx}, {intr.cy}).")
-    return math.degrees(intr.camera_angle_x)
 
 
 def render_frames(grids: Mapping | None, effects: dict, data: SceneDataset,
@@ -59,7 +45,8 @@ def render_frames(grids: Mapping | None, effects: dict, data: SceneDataset,
     for env, positions in groups.items():
         radiance = envmap if env < 0 else data.envmaps[env].radiance.cpu().numpy()
         renderer = mitsuba_backend.ViewRenderer(mi, mitsuba_backend.scene_dict(
-            mi, spec, arrays, radiance, intr.width, intr.height, fov_x_deg(data), spp,
+            mi, spec, arrays, radiance, intr.width, intr.height,
+            fov_x_deg(intr, f"Dataset '{data.root}' (transforms_test.json)"), spp,
             extra_lights=extra_lights))
         for pos in positions:
             frame = int(frames[pos])

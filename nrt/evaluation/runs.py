@@ -15,9 +15,9 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from nrt.cli.run_dirs import LAST_CKPT, RUN_FILE
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
+from nrt.run_dirs import LAST_CKPT, RUN_FILE
 
 log = logging.getLogger(__name__)
 

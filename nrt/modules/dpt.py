@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from nrt.cameras import fov_x_deg
 from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
 from nrt.errors import NrtError
 from nrt.modules.coarse_to_fine import (
@@ -48,6 +49,7 @@ from nrt.modules.coarse_to_fine import (
     resample_parameter,
     resolution_at,
 )
+from nrt.modules.schedules import training_progress
 from nrt.modules.tensorboard import log_image
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, resample_cells
@@ -166,11 +168,10 @@ class DPTModule(L.LightningModule):
             mi = mitsuba_backend.select_variant("auto")
             intr = self._frames.intrinsics
             spec = {"bbox": self.bbox.cpu().tolist(), "effects": self.effects}
-            from nrt.evaluation.rerender import fov_x_deg
-
             scene = mitsuba_backend.scene_dict(mi, spec, self.property_arrays(), self._env,
                                                intr.width, intr.height,
-                                               fov_x_deg(self._frames), self.hparams.spp)
+                                               fov_x_deg(intr, "The training cameras"),
+                                               self.hparams.spp)
             scene["integrator"] = {"type": "prbvolpath", "max_depth": mitsuba_backend.max_depth(
                 int(self.effects["max_scattering_order"]))}
             self._renderer = mitsuba_backend.ViewRenderer(mi, scene)
@@ -199,8 +200,6 @@ class DPTModule(L.LightningModule):
     # --------------------------------------------------------------- training
     def _progress(self) -> float:
         """The run's course in [0, 1] (steps, or seconds of a ``budget_s``)."""
-        from nrt.callbacks import training_progress
-
         return training_progress(self.trainer) if self._trainer is not None else 0.0
 
     def _resolution_now(self) -> int:

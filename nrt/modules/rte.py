@@ -21,7 +21,6 @@ from pathlib import Path
 import lightning as L
 import torch
 
-from nrt.callbacks import training_progress
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.data.samplers import (
     DensityPointSampler,
@@ -38,6 +37,7 @@ from nrt.metrics import psnr
 from nrt.modules.ea import load_ea_field
 from nrt.modules.light_field import LightField
 from nrt.modules.medium import GroundTruthMedium, Medium, NeuralMedium
+from nrt.modules.schedules import scheduled, training_progress
 from nrt.modules.tensorboard import log_image
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap, texel_directions
@@ -47,15 +47,6 @@ log = logging.getLogger(__name__)
 
 OBJECTIVES = ("rte", "bc", "obs", "vre")
 DENSITY_SOURCES = ("ea", "none", "ground_truth")
-
-
-def scheduled(value: float | list, step: int) -> float:
-    """A constant, or ``[start, end, ramp_steps]``: linear from start to end over the first
-    ``ramp_steps`` steps, then constant (threestudio's ``lambda_*`` ramps)."""
-    if isinstance(value, list | tuple):
-        start, end, steps = value
-        return float(start + (end - start) * min(step / max(steps, 1), 1.0))
-    return float(value)
 
 
 def mean_radiance(envmap: EnvironmentMap) -> float:

@@ -36,7 +36,6 @@ import time
 
 import torch
 
-from nrt.callbacks import training_progress
 from nrt.errors import NrtError
 from nrt.losses.observation import exit_radiance
 from nrt.losses.photo import check_tonemap, photo_loss
@@ -50,6 +49,7 @@ from nrt.modules.coarse_to_fine import (
 )
 from nrt.modules.ea import load_ea_field
 from nrt.modules.rte import RadiativeTransferStage
+from nrt.modules.schedules import training_progress
 from nrt.modules.sh_light_field import SHGridLightField
 from nrt.modules.voxel_medium import VoxelMedium, Voxels
 from nrt.physics.direct_light import direct_inscatter

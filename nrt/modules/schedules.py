@@ -1,0 +1,37 @@
+"""Schedules over a run's course, read by the stages: loss weights that ramp over steps,
+and the run's progress in [0, 1] (of its steps, or of its time budget) that
+coarse-to-fine grids, warm-ups and learning-rate decays follow."""
+
+from __future__ import annotations
+
+
+class RunClock:
+    """A training clock among a trainer's callbacks, as :func:`training_progress` reads
+    it: training seconds so far and the time budget (None: no limit).
+    :class:`nrt.callbacks.WallClock` is the one nrt-train installs."""
+
+    budget_s: float | None = None
+
+    def seconds(self) -> float:
+        """Training seconds so far."""
+        raise NotImplementedError
+
+
+def training_progress(trainer) -> float:
+    """How far a run is, in [0, 1]: the larger of steps / max_steps and, with a time budget
+    (``budget_s``), training seconds / budget, so that schedules over a run's course
+    (coarse to fine, warm-ups) also complete in equal-time runs."""
+    done = trainer.global_step / max(int(trainer.max_steps), 1) if trainer.max_steps > 0 else 0.0
+    clock = next((c for c in trainer.callbacks if isinstance(c, RunClock)), None)
+    if clock is not None and clock.budget_s:
+        done = max(done, clock.seconds() / clock.budget_s)
+    return min(done, 1.0)
+
+
+def scheduled(value: float | list, step: int) -> float:
+    """A constant, or ``[start, end, ramp_steps]``: linear from start to end over the first
+    ``ramp_steps`` steps, then constant (threestudio's ``lambda_*`` ramps)."""
+    if isinstance(value, list | tuple):
+        start, end, steps = value
+        return float(start + (end - start) * min(step / max(steps, 1), 1.0))
+    return float(value)
