@@ -10,6 +10,7 @@ import torch
 
 from nrt.errors import ConfigError
 from nrt.modules.schedules import RunClock
+from nrt.modules.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -138,33 +139,29 @@ class HeldOutImageMetrics(L.Callback):
 class PropertyMetrics(L.Callback):
     """Medium-property MSE x 10^2 against the dataset's ground truth (DESIGN.md section 3).
 
-    For a stage whose module learns a medium (``property_grids(resolution)`` returns grids
-    in the ground truth's layout, else None) and a dataset with ``ground_truth.npz``:
-    ``val/mse_{sigma_a,sigma_s,sigma_t}_x100`` and, unless the scene is isotropic or the
-    module keeps g fixed (``learns_g = False``), ``val/mse_g_x100`` (weighted by the true
-    sigma_s), at step 0 (the starting point of accuracy-versus-time curves), after each
-    validation and when training ends; with ``slices``, the middle z-slices learned | true
-    to TensorBoard.
+    For a stage that learns a medium (:meth:`nrt.modules.stage.Stage.property_grids` is not
+    None) and a dataset with ``ground_truth.npz``: ``val/mse_{sigma_a,sigma_s,sigma_t}_x100``
+    and, where the stage learns g (:attr:`~nrt.modules.stage.Stage.learns_g`: not for an
+    isotropic scene or a fixed g), ``val/mse_g_x100`` (weighted by the true sigma_s), at
+    step 0 (the starting point of accuracy-versus-time curves), after each validation and
+    when training ends; with ``slices``, the middle z-slices learned | true to TensorBoard.
     """
 
     def __init__(self, slices: bool = True):
         self.slices = slices
         self._last_measured: int | None = None
 
-    def measure(self, trainer, pl_module) -> dict[str, float]:
-        dm = trainer.datamodule
-        gt = getattr(dm, "ground_truth", None) if dm is not None else None
-        grids_of = getattr(pl_module, "property_grids", None)
-        if gt is None or grids_of is None:
+    def measure(self, trainer, pl_module: Stage) -> dict[str, float]:
+        gt = pl_module.ground_truth()
+        if gt is None:
             return {}
-        learned = grids_of(gt["g"].shape[0])
+        learned = pl_module.property_grids(gt["g"].shape[0])
         if learned is None:
             return {}
         from nrt.metrics import property_mse
 
         truth = {k: v.to(learned["sigma_a"].device) for k, v in gt.items()}
-        effects = getattr(pl_module, "effects", None) or {}
-        with_g = effects.get("phase", "hg") != "isotropic" and getattr(pl_module, "learns_g", True)
+        with_g = pl_module.learns_g
         if self.slices:
             self._log_slices(pl_module, learned, truth, with_g)
         return {f"val/mse_{k}_x100": float(v)
@@ -226,12 +223,14 @@ class RerenderEvaluation(L.Callback):
         self._count = 0
         self._data = None
 
-    def on_validation_epoch_end(self, trainer, pl_module) -> None:
-        if self.every <= 0 or trainer.sanity_checking or getattr(
-                pl_module, "property_grids", None) is None:
+    def on_validation_epoch_end(self, trainer, pl_module: Stage) -> None:
+        if self.every <= 0 or trainer.sanity_checking:
             return
         self._count += 1
         if self._count % self.every:
+            return
+        grids = pl_module.property_grids(pl_module.grid_resolution(self.resolution or None, 64))
+        if grids is None:  # a stage without a medium
             return
         from nrt.data.dataset import load_dataset
         from nrt.evaluation.evaluate import Evaluation, rerender_metrics
@@ -239,11 +238,6 @@ class RerenderEvaluation(L.Callback):
         dm = trainer.datamodule
         if self._data is None:
             self._data = load_dataset(dm.dataset_dir, "test")
-        gt = self._data.ground_truth
-        grids = pl_module.property_grids(self.resolution or (gt["g"].shape[0] if gt is not None
-                                                             else 64))
-        if grids is None:
-            return
         result = Evaluation()
         settings = {"environments": self.environments, "max_views": self.max_views,
                     "spp": self.spp, "noise_floor": False}

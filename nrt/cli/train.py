@@ -178,7 +178,7 @@ def train_task(cfg: DictConfig) -> dict:
     log.info("Run folder %s; dataset %s%s", run_dir, dataset_dir,
              f"; resuming from {ckpt}" if ckpt else "")
     trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
-    exports = model.export(run_dir) if hasattr(model, "export") else {}
+    exports = model.export(run_dir)
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
     write_run_info(run_dir, exports=exports, final_metrics=metrics)
     log.info("Finished: %s", {k: round(v, 4) for k, v in metrics.items()})

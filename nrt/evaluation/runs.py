@@ -11,6 +11,7 @@ import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from omegaconf import OmegaConf
@@ -18,6 +19,9 @@ from omegaconf import OmegaConf
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
 from nrt.run_dirs import LAST_CKPT, RUN_FILE
+
+if TYPE_CHECKING:
+    from nrt.modules.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -78,14 +82,13 @@ def run_grids(run: TrainedRun, resolution: int | None, checkpoint: str = "last"
     from hydra.utils import get_class
 
     ckpt = checkpoint_path(run, checkpoint)
-    module = get_class(run.model_target).load_from_checkpoint(ckpt, map_location="cpu")
-    query = getattr(module, "property_grids", None)
-    grids = query(int(resolution)) if query is not None else None
+    module: Stage = get_class(run.model_target).load_from_checkpoint(ckpt, map_location="cpu")
+    grids = module.property_grids(int(resolution))
     if grids is None:
         raise NrtError(f"run='{run.path}' (stage {run.stage}) has no learned medium to "
                        "evaluate: stages rte and dpt learn one; ea learns a density only and "
                        "forward solves for light in the true medium.")
-    bbox = getattr(getattr(module, "medium", module), "bbox", None)
+    bbox = module.medium_bbox()
     out = {k: v.detach().float().cpu() for k, v in grids.items()}
     if bbox is not None:
         out["bbox"] = bbox.detach().float().cpu()

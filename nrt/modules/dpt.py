@@ -35,7 +35,6 @@ import logging
 import time
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import torch
 from torch import nn
@@ -49,7 +48,7 @@ from nrt.modules.coarse_to_fine import (
     resample_parameter,
     resolution_at,
 )
-from nrt.modules.schedules import training_progress
+from nrt.modules.stage import Stage
 from nrt.modules.tensorboard import log_image
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, resample_cells
@@ -59,7 +58,7 @@ log = logging.getLogger(__name__)
 MITSUBA_KEYS = {"sigma_t": "sigma_t.data", "albedo": "albedo.data", "g": "g.data"}
 
 
-class DPTModule(L.LightningModule):
+class DPTModule(Stage):
     """Grids of sigma_t, albedo (and g) fitted by differentiable path tracing."""
 
     def __init__(self, effects: dict, density: dict, resolutions: list[int],
@@ -68,15 +67,13 @@ class DPTModule(L.LightningModule):
                  max_sigma_t: float = 100.0,
                  phase_g: float | None = None, property_resolution: int | None = None,
                  ea_detail: bool = False, seed: int = 0):
-        super().__init__()
+        super().__init__(effects)
         self.save_hyperparameters()
         self.automatic_optimization = False
         check_schedule(resolutions, upsample_at, "budget.dpt.resolutions / upsample_at")
         if density.get("source") != "ea":
             raise NrtError("stage=dpt starts from the EA density (init=ea); init.source="
                            f"'{density.get('source')}' is not supported.")
-        self.effects = effects
-        self.learns_g = effects["phase"] == "varying_hg"  # a fixed g is not scored
         res, channels = int(resolutions[0]), 3 if effects.get("chromatic", True) else 1
         self.sigma_t = nn.Parameter(torch.ones(res, res, res, channels))
         self.albedo = nn.Parameter(torch.full((res, res, res, 3), float(init_albedo)))
@@ -98,8 +95,13 @@ class DPTModule(L.LightningModule):
             out["g"] = self.g
         return out
 
+    @property
+    def learns_g(self) -> bool:
+        """Only a g field is learned; a fixed g (phase=hg) is not scored."""
+        return self.effects["phase"] == "varying_hg"
+
     def setup(self, stage: str) -> None:
-        dm = self.trainer.datamodule if self._trainer is not None else None
+        dm = self.datamodule()
         if dm is None:
             return
         self.bbox.copy_(dm.bbox)
@@ -147,7 +149,7 @@ class DPTModule(L.LightningModule):
 
     def configure_optimizers(self):
         opt = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
-        sched = decaying_lr(opt, self.hparams.lr_final_factor, self._progress)
+        sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
     # -------------------------------------------------------------- Mitsuba
@@ -198,13 +200,9 @@ class DPTModule(L.LightningModule):
         return torch.from_numpy(self.renderer().render(c2w.cpu().numpy(), spp, seed))
 
     # --------------------------------------------------------------- training
-    def _progress(self) -> float:
-        """The run's course in [0, 1] (steps, or seconds of a ``budget_s``)."""
-        return training_progress(self.trainer) if self._trainer is not None else 0.0
-
     def _resolution_now(self) -> int:
-        """Coarse to fine over the run's course."""
-        return resolution_at(self._progress(), self.hparams.resolutions,
+        """Coarse to fine over the run's course (steps, or seconds of a ``budget_s``)."""
+        return resolution_at(self.progress(), self.hparams.resolutions,
                              self.hparams.upsample_at)
 
     @torch.no_grad()
@@ -292,6 +290,9 @@ class DPTModule(L.LightningModule):
                   for k, v in self.property_arrays().items()}
         return resample_grids(arrays, resolution, self.bbox.cpu())
 
+    def medium_bbox(self) -> torch.Tensor:
+        return self.bbox
+
     # -------------------------------------------------------------- resume
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         checkpoint["dpt_fixed_g"] = self._fixed_g
@@ -315,11 +316,8 @@ class DPTModule(L.LightningModule):
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """``medium_grids.npz`` at ``property_resolution`` (default: the ground truth's,
         else the final grid's)."""
-        res = self.hparams.property_resolution
-        if res is None:
-            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
-            res = gt["g"].shape[0] if gt is not None else self.sigma_t.shape[0]
+        res = self.grid_resolution(self.hparams.property_resolution, self.sigma_t.shape[0])
         path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE,
-                                   self.property_grids(int(res)), self.bbox)
+                                   self.property_grids(res), self.bbox)
         return {"medium_grids": str(path)}
 

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import torch
 
 from nrt.errors import ConfigError, NrtError
 from nrt.metrics import density_agreement, psnr
 from nrt.modules.ea_field import EAField
+from nrt.modules.stage import Stage
 from nrt.modules.tensorboard import log_image
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.tonemap import log_tonemap, luminance
@@ -48,8 +48,9 @@ def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
     return out
 
 
-class EAModule(L.LightningModule):
-    """Fits an :class:`EAField` to the training photos of a scene."""
+class EAModule(Stage):
+    """Fits an :class:`EAField` to the training photos of a scene. It learns a density,
+    not a medium (no property grids; its export is ``density_grid.npz``)."""
 
     def __init__(self, field: dict, samples_per_ray: int = 64, loss: str = "log_mse",
                  lr: float = 1e-2,
@@ -65,7 +66,7 @@ class EAModule(L.LightningModule):
         self._baseline_psnr: dict[int, float] = {}
 
     def setup(self, stage: str) -> None:
-        dm = self.trainer.datamodule if self.trainer is not None else None
+        dm = self.datamodule()
         if dm is not None:
             self.field.bbox.copy_(dm.bbox.to(self.field.bbox))
 
@@ -109,7 +110,7 @@ class EAModule(L.LightningModule):
         return dens.reshape(resolution, resolution, resolution)
 
     def on_validation_epoch_end(self) -> None:
-        gt = self.trainer.datamodule.ground_truth if self.trainer.datamodule else None
+        gt = self.ground_truth()
         if gt is None:
             return
         sigma_t = luminance(gt["sigma_a"] + gt["sigma_s"]).to(self.device)
@@ -126,11 +127,7 @@ class EAModule(L.LightningModule):
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """Write ``density_grid.npz`` (``density`` [z, y, x] per unit length, ``bbox``) at
         ``density_resolution`` (default: the ground truth's, else 64) into ``run_dir``."""
-        res = self.hparams.density_resolution
-        if res is None:
-            dm = self.trainer.datamodule if self._trainer is not None else None
-            gt = dm.ground_truth if dm is not None else None
-            res = gt["g"].shape[0] if gt is not None else 64
+        res = self.grid_resolution(self.hparams.density_resolution, 64)
         path = Path(run_dir) / "density_grid.npz"
         np.savez_compressed(path, density=self.density_grid(res).cpu().numpy(),
                             bbox=self.field.bbox.cpu().numpy())

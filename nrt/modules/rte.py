@@ -18,7 +18,6 @@ import logging
 import time
 from pathlib import Path
 
-import lightning as L
 import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
@@ -37,7 +36,8 @@ from nrt.metrics import psnr
 from nrt.modules.ea import load_ea_field
 from nrt.modules.light_field import LightField
 from nrt.modules.medium import GroundTruthMedium, Medium, NeuralMedium
-from nrt.modules.schedules import scheduled, training_progress
+from nrt.modules.schedules import scheduled
+from nrt.modules.stage import Stage
 from nrt.modules.tensorboard import log_image
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap, texel_directions
@@ -57,7 +57,7 @@ def mean_radiance(envmap: EnvironmentMap) -> float:
     return float((lum * solid).sum() / solid.sum().clamp_min(1e-30))
 
 
-class RadiativeTransferStage(L.LightningModule):
+class RadiativeTransferStage(Stage):
     """What every stage-2 formulation shares: the scene's effects (all scattering orders),
     the training environment and its suns and emitters as known lights, the medium (the
     dataset's ground truth in forward mode), the validation baselines, the property grids
@@ -67,7 +67,7 @@ class RadiativeTransferStage(L.LightningModule):
 
     def __init__(self, effects: dict, density: dict, sun: dict | None,
                  property_resolution: int | None):
-        super().__init__()
+        super().__init__(effects)
         if int(effects.get("max_scattering_order", -1)) != -1:
             raise NrtError(
                 f"scene.effects.max_scattering_order={effects['max_scattering_order']}: the RTE "
@@ -77,7 +77,6 @@ class RadiativeTransferStage(L.LightningModule):
         if density["source"] not in DENSITY_SOURCES:
             raise NrtError(f"init.source must be one of {list(DENSITY_SOURCES)}, got "
                            f"'{density['source']}'.")
-        self.effects = effects
         self.medium: Medium | None = None
         self.envmap: EnvironmentMap | None = None  # the training environment E
         self.env_rest: EnvironmentMap | None = None  # E without its sun: the inflow of L
@@ -88,7 +87,7 @@ class RadiativeTransferStage(L.LightningModule):
 
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
-        dm = self.trainer.datamodule if self._trainer is not None else None
+        dm = self.datamodule()
         if dm is None:
             return
         bbox = dm.bbox.to(self.device)
@@ -168,7 +167,7 @@ class RadiativeTransferStage(L.LightningModule):
         if view not in self._baselines:
             ref, bg = batch["rgb"], batch["background"]
             out = {"psnr_background_only": float(psnr(bg, ref))}
-            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
+            gt = self.ground_truth()
             if gt is not None:
                 true = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
                                          self.medium.bbox.cpu()).to(self.device)
@@ -185,16 +184,16 @@ class RadiativeTransferStage(L.LightningModule):
             return None
         return self.medium.grids(resolution)
 
+    def medium_bbox(self) -> torch.Tensor | None:
+        return self.medium.bbox if self.medium is not None else None
+
     # ------------------------------------------------------------------ export
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) at ``property_resolution``
         (default: the ground truth's, else 64)."""
         if not isinstance(self.medium, NeuralMedium):
             return {}
-        res = self.hparams.property_resolution
-        if res is None:
-            gt = self.trainer.datamodule.ground_truth if self._trainer is not None else None
-            res = gt["sigma_a"].shape[0] if gt is not None else 64
+        res = self.grid_resolution(self.hparams.property_resolution, 64)
         path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, self.property_grids(res),
                                    self.medium.bbox)
         return {"medium_grids": str(path)}
@@ -245,14 +244,11 @@ class RTEModule(RadiativeTransferStage):
         opt = torch.optim.Adam(groups)
         factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup
 
-        def progress() -> float:  # of the steps, or of budget_s in equal-time runs
-            return training_progress(self.trainer) if self._trainer is not None else 0.0
-
-        def decay(s: int) -> float:
-            return factor ** progress()
+        def decay(s: int) -> float:  # over the steps, or over budget_s in equal-time runs
+            return factor ** self.progress()
 
         def medium(s: int) -> float:  # the medium waits until the light field is plausible
-            return decay(s) if progress() >= warmup else 0.0
+            return decay(s) if self.progress() >= warmup else 0.0
         sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [medium] * (len(groups) - 1))
         return [opt], [{"scheduler": sched, "interval": "step"}]
 

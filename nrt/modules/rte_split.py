@@ -49,7 +49,6 @@ from nrt.modules.coarse_to_fine import (
 )
 from nrt.modules.ea import load_ea_field
 from nrt.modules.rte import RadiativeTransferStage
-from nrt.modules.schedules import training_progress
 from nrt.modules.sh_light_field import SHGridLightField
 from nrt.modules.voxel_medium import VoxelMedium, Voxels
 from nrt.physics.direct_light import direct_inscatter
@@ -122,9 +121,6 @@ class SplitRTEModule(RadiativeTransferStage):
         opt = torch.optim.Adam(groups)
         sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
         return [opt], [{"scheduler": sched, "interval": "step"}]
-
-    def progress(self) -> float:
-        return training_progress(self.trainer) if self._trainer is not None else 0.0
 
     # ------------------------------------------------------------- transport
     def transport_medium(self):

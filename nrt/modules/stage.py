@@ -1,0 +1,86 @@
+"""The stage contract: what every stage of nrt (a LightningModule that ``nrt-train
+stage=<name>`` trains) provides, so that callbacks, evaluation and the CLI rely on it
+instead of probing.
+
+Every stage implements Lightning's ``training_step`` and ``configure_optimizers``, and a
+``validation_step`` that returns ``{"image": pred, "reference": ref}``, both (H, W, 3)
+linear radiance of one held-out view (:class:`nrt.callbacks.HeldOutImageMetrics` scores
+them). It gets the dataset from the trainer's datamodule
+(:class:`nrt.data.datamodule.RayDataModule`) through :meth:`Stage.datamodule`.
+
+Optional, with these defaults:
+
+- ``effects``: the scene's declared effects (``scene.effects``); ``{}`` for a stage that
+  reads none.
+- :meth:`Stage.property_grids`: the learned medium on the ground truth's grid layout
+  (what the property metrics, the periodic re-render and ``nrt-eval`` score); None for a
+  stage that learns none.
+- :meth:`Stage.medium_bbox`: the box those grids cover; None without them.
+- :attr:`Stage.learns_g`: whether g is a learned property that metrics should score
+  (default: whenever the scene's phase has a g).
+- :meth:`Stage.export`: files written into the run folder after training; none.
+
+Shared helpers: :meth:`Stage.ground_truth`, :meth:`Stage.progress` (of the run's steps or
+time budget, for schedules) and :meth:`Stage.grid_resolution`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning as L
+import torch
+
+from nrt.modules.schedules import training_progress
+
+
+class Stage(L.LightningModule):
+    """Base of every stage; see the module's docstring for the contract."""
+
+    def __init__(self, effects: dict | None = None):
+        super().__init__()
+        self.effects = effects if effects is not None else {}
+
+    # ------------------------------------------------------------ what stages offer
+    def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
+        """The learned medium at resolution^3 cells, ``[z, y, x]``-indexed like the dataset's
+        ground truth: ``sigma_a``, ``sigma_s`` (R, R, R, 3) and ``g`` (R, R, R); None for a
+        stage that learns no medium."""
+        return None
+
+    def medium_bbox(self) -> torch.Tensor | None:
+        """The box (2, 3) that :meth:`property_grids` covers; None without a medium."""
+        return None
+
+    @property
+    def learns_g(self) -> bool:
+        """Whether metrics score g among the learned properties (when there are any):
+        whenever the scene's phase has a g; a stage that keeps g fixed says False."""
+        return self.effects.get("phase", "hg") != "isotropic"
+
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """Write what the run produced into ``run_dir`` after training; name -> path."""
+        return {}
+
+    # ------------------------------------------------------------------ helpers
+    def datamodule(self):
+        """The attached trainer's datamodule; None outside a trainer."""
+        return self.trainer.datamodule if self._trainer is not None else None
+
+    def ground_truth(self) -> dict[str, torch.Tensor] | None:
+        """The dataset's ground-truth grids, when it has them and a trainer is attached."""
+        dm = self.datamodule()
+        return dm.ground_truth if dm is not None else None
+
+    def progress(self) -> float:
+        """How far the run is, in [0, 1] (:func:`~nrt.modules.schedules.training_progress`);
+        0 outside a trainer."""
+        return training_progress(self.trainer) if self._trainer is not None else 0.0
+
+    def grid_resolution(self, requested: int | None, fallback: int) -> int:
+        """Cells per axis of exported or scored grids: ``requested``, else the ground
+        truth's, else ``fallback``."""
+        if requested is not None:
+            return int(requested)
+        gt = self.ground_truth()
+        return int(gt["g"].shape[0]) if gt is not None else int(fallback)
