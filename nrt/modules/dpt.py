@@ -48,7 +48,7 @@ from nrt.modules.coarse_to_fine import (
     resample_parameter,
     resolution_at,
 )
-from nrt.modules.stage import Stage
+from nrt.modules.stage import Stage, check_learning_rates
 from nrt.modules.tensorboard import log_image
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, resample_cells
@@ -71,6 +71,7 @@ class DPTModule(Stage):
         self.save_hyperparameters()
         self.automatic_optimization = False
         check_schedule(resolutions, upsample_at, "budget.dpt.resolutions / upsample_at")
+        check_learning_rates(lr, "losses.lr")
         if density.get("source") != "ea":
             raise NrtError("stage=dpt starts from the EA density (init=ea); init.source="
                            f"'{density.get('source')}' is not supported.")

@@ -17,7 +17,7 @@ import torch
 from nrt.errors import ConfigError, NrtError
 from nrt.metrics import density_agreement, psnr
 from nrt.modules.ea_field import EAField
-from nrt.modules.stage import Stage
+from nrt.modules.stage import Stage, check_learning_rates
 from nrt.modules.tensorboard import log_image
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.tonemap import log_tonemap, luminance
@@ -61,6 +61,7 @@ class EAModule(Stage):
         if loss not in PHOTOMETRIC_LOSSES:
             raise ConfigError(f"losses.photometric must be one of {sorted(PHOTOMETRIC_LOSSES)}, "
                               f"got '{loss}'.")
+        check_learning_rates(lr, "model.lr")
         self.photometric = PHOTOMETRIC_LOSSES[loss]
         self.field = EAField(**field)
         self._baseline_psnr: dict[int, float] = {}

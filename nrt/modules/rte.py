@@ -37,7 +37,7 @@ from nrt.modules.ea import load_ea_field
 from nrt.modules.light_field import LightField
 from nrt.modules.medium import GroundTruthMedium, Medium, NeuralMedium
 from nrt.modules.schedules import scheduled
-from nrt.modules.stage import Stage
+from nrt.modules.stage import Stage, check_learning_rates
 from nrt.modules.tensorboard import log_image
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap, texel_directions
@@ -215,6 +215,7 @@ class RTEModule(RadiativeTransferStage):
         if unknown:
             raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
                            f"objectives are {list(OBJECTIVES)}.")
+        check_learning_rates(lr, "model.lr")
         self.light = LightField(**light_field)
         if density["source"] != "ground_truth":
             self.medium = self._neural_medium(effects, medium, density)

@@ -50,6 +50,7 @@ from nrt.modules.coarse_to_fine import (
 from nrt.modules.ea import load_ea_field
 from nrt.modules.rte import RadiativeTransferStage
 from nrt.modules.sh_light_field import SHGridLightField
+from nrt.modules.stage import check_learning_rates
 from nrt.modules.voxel_medium import VoxelMedium, Voxels
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.phase import sample_uniform_sphere
@@ -90,6 +91,7 @@ class SplitRTEModule(RadiativeTransferStage):
         check_schedule(medium["resolutions"], medium["upsample_at"],
                        "budget.rte.medium_resolutions / medium_upsample_at")
         check_tonemap(photo_tonemap)
+        check_learning_rates(lr, "model.lr")
         # isotropic in-scattering reads band 0 only: the higher bands would be computed for
         # nothing (DESIGN.md: simulate only what the scene calls for)
         degree = 0 if effects.get("phase") == "isotropic" else int(light_field["degree"])

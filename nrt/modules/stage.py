@@ -21,7 +21,9 @@ Optional, with these defaults:
 - :meth:`Stage.export`: files written into the run folder after training; none.
 
 Shared helpers: :meth:`Stage.ground_truth`, :meth:`Stage.progress` (of the run's steps or
-time budget, for schedules) and :meth:`Stage.grid_resolution`.
+time budget, for schedules) and :meth:`Stage.grid_resolution`. A stage checks its config
+when it is built (:class:`~nrt.errors.ConfigError`, e.g. :func:`check_learning_rates`), so
+that nrt-train refuses mistakes before it loads any data.
 """
 
 from __future__ import annotations
@@ -31,7 +33,17 @@ from pathlib import Path
 import lightning as L
 import torch
 
+from nrt.errors import ConfigError
 from nrt.modules.schedules import training_progress
+
+
+def check_learning_rates(lr: float | dict[str, float], key: str) -> None:
+    """Refuse learning rates (one, or a dict of them) that are not positive numbers; ``key``
+    names them in the message (``model.lr``)."""
+    for name, rate in (lr.items() if isinstance(lr, dict) else [("", lr)]):
+        if isinstance(rate, bool) or not isinstance(rate, int | float) or rate <= 0:
+            raise ConfigError(f"{key}{'.' + name if name else ''}={rate}: a learning rate must "
+                              "be a positive number.")
 
 
 class Stage(L.LightningModule):
