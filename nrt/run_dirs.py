@@ -25,13 +25,14 @@ RESUMED_PREFIX = "resumed-"
 
 _chosen: dict[tuple[str, str], str] = {}
 _tags: dict[str, str] = {}
-_created: set[str] = set()  # absolute paths of the folders new_run_dir named
+_created: dict[Path, Path] = {}  # folder new_run_dir named -> its nearest existing ancestor
 
 
 def new_run_dir(base: str | Path) -> str:
     """``<base>/<timestamp>-<pid>``: unique, so runs never overwrite each other."""
     path = f"{base}/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}"
-    _created.add(os.path.abspath(path))
+    folder = Path(os.path.abspath(path))
+    _created[folder] = next(p for p in folder.parents if p.exists())
     return path
 
 
@@ -62,20 +63,19 @@ def resume_tag(resume) -> str:
                             f"{RESUMED_PREFIX}{time.strftime('%Y-%m-%d_%H-%M-%S')}")
 
 
-def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: float,
-                         root: str | Path) -> None:
+def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: float) -> None:
     """Undo what a start that failed wrote into ``run_dir``, unless it saved a checkpoint
     after ``since`` (then it trained, and its folder is a run): a folder that this process
-    named (:func:`new_run_dir`) goes, with the folders above it left empty, up to ``root``;
-    in a resumed run's folder only this start's config copy (``config_subdir``,
-    ``.hydra/resumed-<time>``) goes."""
+    named (:func:`new_run_dir`) goes, with the folders above it that did not exist before
+    and are empty now; in a resumed run's folder only this start's config copy
+    (``config_subdir``, ``.hydra/resumed-<time>``) goes."""
     run_dir = Path(os.path.abspath(run_dir))
     if any(p.stat().st_mtime >= since for p in (run_dir / "checkpoints").glob("*.ckpt")):
         return
-    if str(run_dir) in _created:
+    if run_dir in _created:
         shutil.rmtree(run_dir, ignore_errors=True)
-        root, parent = Path(os.path.abspath(root)), run_dir.parent
-        while root in parent.parents and not any(parent.iterdir()):
+        parent = run_dir.parent
+        while parent != _created[run_dir] and parent.is_dir() and not any(parent.iterdir()):
             parent.rmdir()
             parent = parent.parent
     elif config_subdir and Path(config_subdir).name.startswith(RESUMED_PREFIX):

@@ -85,24 +85,29 @@ def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
 
 
 def test_a_failed_start_removes_only_what_it_wrote(tmp_path):
-    """A folder this process named goes (with the folders above it left empty), unless it
-    saved a checkpoint; a resumed run keeps everything but this start's config copy."""
+    """A folder this process named goes (with the folders above it that it created), unless
+    it saved a checkpoint; a resumed run keeps everything but this start's config copy."""
     old = tmp_path / "default" / "ea" / "old"
     (old / ".hydra" / "resumed-x").mkdir(parents=True)
     (old / "checkpoints").mkdir()
     (old / "checkpoints" / "last.ckpt").write_text("trained before")
     start = time.time() + 1.0  # this start began after the checkpoint was saved
-    discard_failed_start(old, ".hydra/resumed-x", start, tmp_path)
+    discard_failed_start(old, ".hydra/resumed-x", start)
     assert (old / "checkpoints" / "last.ckpt").is_file() and (old / ".hydra").is_dir()
     assert not (old / ".hydra" / "resumed-x").exists()
-    fresh = Path(new_run_dir(tmp_path / "default" / "rte"))
+    fresh = Path(new_run_dir(tmp_path / "default" / "rte" / "new"))
     (fresh / ".hydra").mkdir(parents=True)
-    discard_failed_start(fresh, ".hydra/", time.time(), tmp_path)
+    discard_failed_start(fresh, ".hydra/", time.time())
     assert sorted(p.name for p in (tmp_path / "default").iterdir()) == ["ea"]
-    trained = Path(new_run_dir(tmp_path / "default" / "dpt"))
+    (tmp_path / "default" / "dpt").mkdir()  # existed before: kept, though empty
+    fresh = Path(new_run_dir(tmp_path / "default" / "dpt" / "new"))
+    (fresh / ".hydra").mkdir(parents=True)
+    discard_failed_start(fresh, ".hydra/", time.time())
+    assert (tmp_path / "default" / "dpt").is_dir() and not (fresh.parent).exists()
+    trained = Path(new_run_dir(tmp_path / "default" / "forward"))
     (trained / "checkpoints").mkdir(parents=True)
     (trained / "checkpoints" / "last.ckpt").write_text("saved by this start")
-    discard_failed_start(trained, ".hydra/", start - 1.0, tmp_path)
+    discard_failed_start(trained, ".hydra/", start - 1.0)
     assert (trained / "checkpoints" / "last.ckpt").is_file()
 
 

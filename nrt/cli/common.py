@@ -99,8 +99,7 @@ def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
             _log_to_files(str(exc))
             hydra_cfg = HydraConfig.get()
             run_dirs.discard_failed_start(hydra_cfg.runtime.output_dir, hydra_cfg.output_subdir,
-                                          started, OmegaConf.select(cfg, "paths.output_dir",
-                                                                    default="outputs"))
+                                          started)
             print(f"\nnrt: error: {exc}", file=sys.stderr)
             sys.exit(2)
 
