@@ -142,7 +142,8 @@ def test_config_mistakes_are_refused_before_data(overrides, needle):
     key, which the CLI prints as ``nrt: error:`` with status 2 (the test above)."""
     from hydra.errors import InstantiationException
 
-    from nrt.cli.train import check_budget, resolve_ea_checkpoint
+    from nrt.cli.checks import check_budget
+    from nrt.cli.train import resolve_ea_checkpoint
     from nrt.errors import NrtError
 
     cfg = compose_config("train", ["preset=tiny", *overrides])
