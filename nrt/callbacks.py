@@ -116,6 +116,10 @@ class HeldOutImageMetrics(L.Callback):
     def __init__(self, lpips: bool = False, lpips_net: str = "alex"):
         self.lpips_enabled, self.lpips_net = lpips, lpips_net
         self._lpips = None
+        if lpips:  # missing weights are refused before nrt-train loads any data
+            from nrt.weights import lpips_backbone_path
+
+            lpips_backbone_path(lpips_net)
 
     def setup(self, trainer, pl_module, stage: str) -> None:
         if self.lpips_enabled and self._lpips is None:

@@ -122,6 +122,10 @@ def test_missing_weights_name_nrt_weights(tmp_path, monkeypatch):
         FID()
     with pytest.raises(NrtError, match="alex"):
         LPIPS("squeeze")
+    from nrt.callbacks import HeldOutImageMetrics
+
+    with pytest.raises(NrtError, match="Run nrt-weights once"):  # when built: before any data
+        HeldOutImageMetrics(lpips=True)
 
 
 class _Boom:
