@@ -256,17 +256,22 @@ def test_white_furnace_is_solved_by_the_transport_objective_alone():
     assert err.abs().quantile(0.95) < 0.15, err.abs().quantile(0.95)
 
 
-@pytest.mark.parametrize("effects", [{"phase": "hg", "chromatic": True},
-                                     {"phase": "varying_hg", "chromatic": False},
-                                     {"phase": "isotropic", "chromatic": True}])
-def test_voxel_medium_composes_the_neural_heads_on_its_cells(effects):
+@pytest.mark.parametrize("effects,parametrization", [
+    ({"phase": "hg", "chromatic": True}, "scattering"),
+    ({"phase": "hg", "chromatic": True}, "extinction"),
+    ({"phase": "varying_hg", "chromatic": False}, "extinction"),
+    ({"phase": "isotropic", "chromatic": True}, "extinction")])
+def test_voxel_medium_composes_the_neural_heads_on_its_cells(effects, parametrization):
     """At the density's cell centres the composed voxels equal the heads of
     :class:`NeuralMedium` applied to the baked density and the (trilinearly upsampled)
     modulation; between them they interpolate linearly; grey media keep one sigma_t
     channel and an RGB albedo; g exists only for an HG phase."""
     torch.manual_seed(5)
-    medium = VoxelMedium(effects, resolution=4, density_resolution=8)
+    medium = VoxelMedium(effects, resolution=4, density_resolution=8,
+                         parametrization=parametrization)
     medium.set_density(lambda p: 1 + p[:, 0] ** 2)
+    start = medium(cell_centres(8, medium.bbox).reshape(-1, 3))  # sigma_t = rho, albedo 0.8
+    torch.testing.assert_close(start.albedo, torch.full_like(start.albedo, 0.8))
     with torch.no_grad():
         medium.modulation.values.normal_(0, 0.3)
     centres = cell_centres(8, medium.bbox).reshape(-1, 3)

@@ -7,10 +7,12 @@ sigma_t channel with an RGB albedo, as the scene spec draws it, Mitsuba renders 
 one-channel ``sigma_t`` grid, a three-channel ``albedo``) and ``stage=dpt`` fits it.
 Units: sigma per unit world length; g in [-G_MAX, G_MAX].
 
-- :class:`NeuralMedium`: chromatic: ``sigma_a = rho(x) exp(a(x))``, ``sigma_s = rho(x)
-  exp(s(x))`` per channel, ``albedo = sigmoid(s - a)`` (exact without dividing by a small
-  sigma_t); grey: ``sigma_t = rho(x) exp(t(x))`` (one channel), ``albedo = sigmoid(b(x))``
-  (RGB), ``sigma_s = sigma_t albedo``, ``sigma_a = sigma_t (1 - albedo)``. Both:
+- :class:`NeuralMedium`: chromatic (``parametrization=scattering``): ``sigma_a = rho(x)
+  exp(a(x))``, ``sigma_s = rho(x) exp(s(x))`` per channel, ``albedo = sigmoid(s - a)``
+  (exact without dividing by a small sigma_t); grey, or chromatic with
+  ``parametrization=extinction``: ``sigma_t = rho(x) exp(t(x))`` (one channel, or three),
+  ``albedo = sigmoid(b(x))`` (RGB), ``sigma_s = sigma_t albedo``, ``sigma_a = sigma_t (1 -
+  albedo)``. Both:
   ``g = G_MAX tanh(h(x))``, with ``rho`` the EA density (or 1 without a first stage) and
   the exponents and logits from a SIREN or, for the paper's ablation, a trilinear grid.
   Exponents are clamped so exp never overflows.
@@ -30,6 +32,10 @@ from nrt.errors import ConfigError
 from nrt.modules.siren import Siren
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, sample_grid
+
+PARAMETRIZATIONS = ("scattering", "extinction")
+"""Chromatic media modulate ``(sigma_a, sigma_s)`` by exponents, or ``(sigma_t, albedo)`` by
+an exponent and a logit per channel (grey media always use the second)."""
 
 PHASE_HEADS = {"isotropic": "none", "hg": "shared", "varying_hg": "field"}
 """How each declared phase is represented: no g, one shared g, or a g field."""
@@ -98,14 +104,19 @@ class NeuralMedium(Medium):
 
     def __init__(self, effects: dict, density: nn.Module | None = None,
                  modulation: str = "siren", siren: dict | None = None,
-                 grid_resolution: int = 32, init_albedo: float = 0.8):
+                 grid_resolution: int = 32, init_albedo: float = 0.8,
+                 parametrization: str = "scattering"):
         super().__init__(effects)
         if not 0.0 < init_albedo < 1.0:
             raise ConfigError(f"model.medium.init_albedo must lie in (0, 1), got "
                               f"{init_albedo}.")
+        if parametrization not in PARAMETRIZATIONS:
+            raise ConfigError(f"model.medium.parametrization must be one of "
+                              f"{list(PARAMETRIZATIONS)}, got '{parametrization}'.")
         self.density_field = density
-        # chromatic: a (3), s (3); grey: t (1), albedo logits b (3); then h (g field)
-        self.g_index = 6 if self.channels == 3 else 4
+        # exponents a (3), s (3); or t (1 grey, 3 chromatic), albedo logits b (3); then h
+        self.by_extinction = self.channels == 1 or parametrization == "extinction"
+        self.g_index = self.channels + 3 if self.by_extinction else 6
         n_out = self.g_index + (self.phase == "field")
         if modulation == "siren":
             self.modulation: nn.Module = Siren(3, n_out, **(siren or {}))
@@ -116,9 +127,9 @@ class NeuralMedium(Medium):
                               f"'{modulation}'.")
         self.g_shared = nn.Parameter(torch.zeros(())) if self.phase == "shared" else None
         # start: sigma_t = rho, albedo = init_albedo (a, s: exp(a) + exp(s) = 1)
-        offsets = ([math.log(1 - init_albedo)] * 3 + [math.log(init_albedo)] * 3
-                   if self.channels == 3 else
-                   [0.0] + [math.log(init_albedo / (1 - init_albedo))] * 3)
+        offsets = ([0.0] * self.channels + [math.log(init_albedo / (1 - init_albedo))] * 3
+                   if self.by_extinction else
+                   [math.log(1 - init_albedo)] * 3 + [math.log(init_albedo)] * 3)
         offsets += [0.0] * (self.phase == "field")
         self.register_buffer("offsets", torch.tensor(offsets))
 
@@ -141,11 +152,13 @@ class NeuralMedium(Medium):
             g = (G_MAX * torch.tanh(self.g_shared)).expand(h.shape[:-1])
         else:
             g = None
-        if self.channels == 1:
-            sigma_t = rho * torch.exp(h[..., :1].clamp(*EXPONENT_RANGE))
-            b = h[..., 1:4]
+        if self.by_extinction:
+            c = self.channels
+            sigma_t = rho * torch.exp(h[..., :c].clamp(*EXPONENT_RANGE))
+            b = h[..., c:c + 3]
             return MediumProperties(sigma_t * torch.sigmoid(-b), sigma_t * torch.sigmoid(b),
-                                    torch.sigmoid(b), g, extinction=sigma_t)
+                                    torch.sigmoid(b), g,
+                                    extinction=sigma_t if c == 1 else None)
         a, s = h[..., :3].clamp(*EXPONENT_RANGE), h[..., 3:6].clamp(*EXPONENT_RANGE)
         return MediumProperties(rho * torch.exp(a), rho * torch.exp(s), torch.sigmoid(s - a), g)
 

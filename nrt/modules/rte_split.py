@@ -98,7 +98,8 @@ class SplitRTEModule(RadiativeTransferStage):
         self.light = SHGridLightField(degree, int(light_field["resolution"]))
         if density["source"] != "ground_truth":  # init=none: the modulation alone (rho = 1)
             self.medium = VoxelMedium(effects, medium["resolutions"][0],
-                                      medium["density_resolution"], medium["init_albedo"])
+                                      medium["density_resolution"], medium["init_albedo"],
+                                      medium["parametrization"])
         self._ea_ckpt = density.get("ea_ckpt")
         self._baked = False
         self._uncollided_fresh = False

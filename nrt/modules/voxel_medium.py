@@ -61,9 +61,9 @@ class VoxelMedium(NeuralMedium):
     starts at ``resolution``^3 cells."""
 
     def __init__(self, effects: dict, resolution: int = 8, density_resolution: int = 64,
-                 init_albedo: float = 0.8):
+                 init_albedo: float = 0.8, parametrization: str = "scattering"):
         super().__init__(effects, None, modulation="grid", grid_resolution=resolution,
-                         init_albedo=init_albedo)
+                         init_albedo=init_albedo, parametrization=parametrization)
         r = density_resolution
         self.register_buffer("density", torch.ones(r, r, r, 1))
 
