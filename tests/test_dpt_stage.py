@@ -60,6 +60,7 @@ def _eval(out, data_root, *overrides):
     return json.loads(folder.read_text())["metrics"]
 
 
+@pytest.mark.slow
 def test_dpt_lowers_image_loss_and_property_mse_from_its_ea_start(dpt_run):
     _, run, proc = dpt_run
     assert "starts from the EA density" in proc.stdout + proc.stderr
@@ -89,6 +90,7 @@ def test_dpt_lowers_image_loss_and_property_mse_from_its_ea_start(dpt_run):
     assert max(values(rows, "train/nonfinite_render_grads")) == 0
 
 
+@pytest.mark.slow
 def test_dpt_result_rerenders_better_than_its_ea_start(dpt_run, tiny_dataset):
     """nrt-eval evaluates the run unchanged; its Mitsuba re-render of the held-out views
     beats the same re-render of the EA start (the EA density at the ground truth's 32^3,
@@ -120,6 +122,7 @@ def test_dpt_result_rerenders_better_than_its_ea_start(dpt_run, tiny_dataset):
     assert after["psnr_seen"] > before + 0.5, (before, after)
 
 
+@pytest.mark.slow
 def test_dpt_exports_and_resumes_at_the_reached_resolution(dpt_run, tiny_dataset, tmp_path):
     _, run, _ = dpt_run
     grids = load_property_grids(run / "medium_grids.npz")

@@ -26,6 +26,7 @@ from nrt.modules.ea import EAModule
 from nrt.run_dirs import discard_failed_start, new_run_dir
 
 
+@pytest.mark.slow
 def test_tiny_ea_trains_via_cli_and_beats_background(tiny_ea_run):
     out, proc = tiny_ea_run
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -44,6 +45,7 @@ def test_tiny_ea_trains_via_cli_and_beats_background(tiny_ea_run):
         assert grid["density"].shape == (32, 32, 32) and np.isfinite(grid["density"]).all()
 
 
+@pytest.mark.slow
 def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
     cmd, env = train_command(tmp_path, tiny_dataset.parent, "logger=csv", "budget.ea.steps=100000",
                              "budget.checkpoint_every=10", "budget.val_every=1000")
@@ -124,6 +126,7 @@ class _AssertFinite(L.Callback):
             assert torch.isfinite(p).all(), name
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("max_extinction,name", [(50.0, "dense"), (1e-4, "near_empty")])
 def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, name):
     cfg = compose_config("train", [

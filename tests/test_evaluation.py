@@ -222,6 +222,7 @@ def test_eval_of_a_trained_run_and_export_at_a_chosen_resolution(tiny_sweep, tin
     assert np.isfinite(metrics["mse_sigma_t_x100"])
 
 
+@pytest.mark.slow
 def test_budget_s_stops_training_on_training_seconds(tiny_ea_run, tiny_dataset, tmp_path):
     ea_ckpt = next((tiny_ea_run[0] / "default" / "ea").glob("*/checkpoints/last.ckpt"))
     proc = run_train(tmp_path, tiny_dataset.parent, "budget_s=4", "budget.rte.steps=100000",

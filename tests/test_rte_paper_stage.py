@@ -34,6 +34,7 @@ On the default scene (g = 0.137) a flipped g changes nothing measurable (33.9 dB
 same."""
 
 
+@pytest.mark.slow
 def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     """Forward mode: the true medium (HG g = 0.7), only the light field learns (RTE + BC,
     no photos). Its VRE image of the held-out views must reproduce Mitsuba's photos to
@@ -88,6 +89,7 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("stage", "overrides", "needle"), [
     ("rte", (), "stage=rte starts from the EA density"),
     ("dpt", (), "stage=dpt starts from the EA density"),
@@ -218,14 +220,25 @@ HARD_CASES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", [*HARD_CASES, "sun_1e4"])
 def test_hard_cases_train_without_nonfinite_values(tmp_path, case):
-    overrides = HARD_CASES.get(case) or [
+    overrides = hard_case_overrides(case, tmp_path)
+    model, dm = build(tmp_path, f"scene.name={case}", *overrides)
+    trains_finite(model, dm, 100)
+
+
+def hard_case_overrides(case: str, tmp_path) -> list[str]:
+    """A hard case's scene overrides (``sun_1e4``: a sun 1e4 times its sky, as an EXR)."""
+    return HARD_CASES.get(case) or [
         "scene.environments.sky_seeds=[]",
         f"+scene.environments.files.sun={bright_sun_sky(tmp_path / 'sun.exr')}"]
-    model, dm = build(tmp_path, f"scene.name={case}", *overrides)
-    trainer = fit(model, dm, 100)
-    assert trainer.global_step == 100
+
+
+def trains_finite(model, dm, steps: int) -> None:
+    """``steps`` steps run, and the medium's grids and the predicted pixels stay finite."""
+    trainer = fit(model, dm, steps)
+    assert trainer.global_step == steps
     grids = model.medium.grids(8)
     assert all(torch.isfinite(v).all() for v in grids.values())
     batch = next(iter(dm.val_dataloader()))
@@ -278,11 +291,14 @@ def count_calls(monkeypatch, module, name: str) -> list:
     return calls
 
 
-@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", [
+DIRECT_LIGHT_CASES = [  # (model.sun.threshold, scene.effects.emitters, direct light built)
     ("null", "[]", False),
     ("10.0", "[]", True),
     ("null", "[{position:[0.0,2.0,0.0],intensity:[5.0,5.0,5.0]}]", True),
-])
+]
+
+
+@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", DIRECT_LIGHT_CASES)
 def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
         tmp_path, monkeypatch, sun_threshold, emitters, expect_direct):
     model, dm = build(tmp_path, f"model.sun.threshold={sun_threshold}",

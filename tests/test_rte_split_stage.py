@@ -12,7 +12,14 @@ import pytest
 import torch
 from conftest import last_value, only_run_dir, read_csv_metrics, run_train, values
 from omegaconf import OmegaConf
-from test_rte_paper_stage import HARD_CASES, bright_sun_sky, count_calls, fit
+from test_rte_paper_stage import (
+    DIRECT_LIGHT_CASES,
+    HARD_CASES,
+    count_calls,
+    fit,
+    hard_case_overrides,
+    trains_finite,
+)
 
 from nrt.modules import rte_split
 from nrt.modules.rte_split import SplitRTEModule
@@ -26,6 +33,7 @@ reach on the tiny default scene in 300 steps; measured: see
 :func:`test_forward_mode_reproduces_the_photos`."""
 
 
+@pytest.mark.slow
 def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     """Forward mode: the true medium, only the scattered light learns (transport objective,
     no photos). The photo objective's image of the held-out views must reproduce Mitsuba's
@@ -108,18 +116,9 @@ def build(tmp_path, *overrides: str, stage: str = "rte"):
 
 @pytest.mark.parametrize("case", [*HARD_CASES, "sun_1e4"])
 def test_hard_cases_train_without_nonfinite_values(tmp_path, case):
-    overrides = HARD_CASES.get(case) or [
-        "scene.environments.sky_seeds=[]",
-        f"+scene.environments.files.sun={bright_sun_sky(tmp_path / 'sun.exr')}"]
     model, dm = build(tmp_path, f"scene.name={case}", "budget.rte.light_warmup=0.1",
-                      *overrides)
-    trainer = fit(model, dm, 100)
-    assert trainer.global_step == 100
-    grids = model.medium.grids(8)
-    assert all(torch.isfinite(v).all() for v in grids.values())
-    batch = next(iter(dm.val_dataloader()))
-    pred = model.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
-    assert all(torch.isfinite(p).all() for p in pred.values())
+                      *hard_case_overrides(case, tmp_path))
+    trains_finite(model, dm, 100)
 
 
 @pytest.mark.parametrize("stage", ["rte", "forward"])
@@ -138,11 +137,7 @@ def test_grey_isotropic_scene_builds_one_band_and_one_extinction_channel(tmp_pat
         torch.testing.assert_close(t, t[..., :1].expand_as(t))
 
 
-@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", [
-    ("null", "[]", False),
-    ("10.0", "[]", True),
-    ("null", "[{position:[0.0,2.0,0.0],intensity:[5.0,5.0,5.0]}]", True),
-])
+@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", DIRECT_LIGHT_CASES)
 def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
         tmp_path, monkeypatch, sun_threshold, emitters, expect_direct):
     model, dm = build(tmp_path, f"model.sun.threshold={sun_threshold}",

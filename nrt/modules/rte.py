@@ -85,6 +85,30 @@ class RadiativeTransferStage(Stage):
         self._env_sampler: EnvironmentDirectionSampler | None = None
         self._baselines: dict[int, dict[str, float]] = {}
 
+    @staticmethod
+    def check_objectives(weights: dict, objectives: tuple[str, ...], hint: str = "") -> None:
+        """``losses.weights`` names only objectives this formulation has."""
+        unknown = set(weights) - set(objectives)
+        if unknown:
+            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
+                           f"objectives are {list(objectives)}{hint}.")
+
+    def backward_objectives(self, loss_of) -> torch.Tensor:
+        """Backpropagate each active objective (``self.active_weights()``) times its weight,
+        logging its value and seconds; returns the weighted total (detached)."""
+        total = torch.zeros((), device=self.device)
+        for name, weight in self.active_weights().items():
+            start = time.perf_counter()
+            loss = loss_of(name)
+            self.manual_backward(weight * loss)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+            self.log(f"time/step_{name}_s", time.perf_counter() - start)
+            self.log(f"train/loss_{name}", loss.detach())
+            total = total + weight * loss.detach()
+        self.log("train/loss", total, prog_bar=True)
+        return total
+
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
         dm = self.datamodule()
@@ -211,10 +235,7 @@ class RTEModule(RadiativeTransferStage):
         super().__init__(effects, density, sun, property_resolution)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        unknown = set(weights) - set(OBJECTIVES)
-        if unknown:
-            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
-                           f"objectives are {list(OBJECTIVES)}.")
+        self.check_objectives(weights, OBJECTIVES)
         check_learning_rates(lr, "model.lr")
         self.light = LightField(**light_field)
         if density["source"] != "ground_truth":
@@ -290,17 +311,7 @@ class RTEModule(RadiativeTransferStage):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
-        total = 0.0
-        for name, weight in self.active_weights().items():
-            start = time.perf_counter()
-            loss = self.objective(name, batch)
-            self.manual_backward(weight * loss)
-            if self.device.type == "cuda":
-                torch.cuda.synchronize(self.device)
-            self.log(f"time/step_{name}_s", time.perf_counter() - start)
-            self.log(f"train/loss_{name}", loss.detach())
-            total = total + weight * loss.detach()
-        self.log("train/loss", total, prog_bar=True)
+        total = self.backward_objectives(lambda name: self.objective(name, batch))
         if self.hparams.grad_clip:
             self.clip_gradients(opt, gradient_clip_val=self.hparams.grad_clip)
         opt.step()

@@ -36,7 +36,6 @@ import time
 
 import torch
 
-from nrt.errors import NrtError
 from nrt.losses.observation import exit_radiance
 from nrt.losses.photo import check_tonemap, photo_loss
 from nrt.losses.transport import transport_loss
@@ -83,11 +82,8 @@ class SplitRTEModule(RadiativeTransferStage):
         super().__init__(effects, density, sun, property_resolution)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        unknown = set(weights) - set(OBJECTIVES)
-        if unknown:
-            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
-                           f"objectives of stage 2 are {list(OBJECTIVES)} (the paper's four, "
-                           "rte/bc/obs/vre, are experiment=rte_paper).")
+        self.check_objectives(weights, OBJECTIVES,
+                              " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
         check_schedule(medium["resolutions"], medium["upsample_at"],
                        "budget.rte.medium_resolutions / medium_upsample_at")
         check_tonemap(photo_tonemap)
@@ -206,17 +202,7 @@ class SplitRTEModule(RadiativeTransferStage):
             self.refresh_uncollided(detached(medium))
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
-        total = 0.0
-        for name, weight in self.active_weights().items():
-            start = time.perf_counter()
-            loss = self.objective(name, batch, medium)
-            self.manual_backward(weight * loss)
-            if self.device.type == "cuda":
-                torch.cuda.synchronize(self.device)
-            self.log(f"time/step_{name}_s", time.perf_counter() - start)
-            self.log(f"train/loss_{name}", loss.detach())
-            total = total + weight * loss.detach()
-        self.log("train/loss", total, prog_bar=True)
+        total = self.backward_objectives(lambda name: self.objective(name, batch, medium))
         if isinstance(self.medium, VoxelMedium):
             self.log("train/medium_resolution", float(self.medium.resolution))
         opt.step()
