@@ -74,6 +74,7 @@ def test_ground_truth_scores_zero_mse_and_the_noise_floor(truth_eval):
         "sigma_t.vol", "albedo.vol", "medium.xml"}  # default scene: one HG g, no g grid
 
 
+@pytest.mark.slow
 def test_a_wrong_medium_scores_clearly_worse(truth_eval, tiny_dataset, tmp_path):
     truth, _ = truth_eval
     gt = load_property_grids(tiny_dataset / "ground_truth.npz")
@@ -186,6 +187,7 @@ def tiny_sweep(tmp_path_factory, tiny_ea_run, tiny_dataset):
     return out, sweeps[-1]
 
 
+@pytest.mark.slow
 def test_report_draws_one_curve_per_sweep_setting(tiny_sweep, tmp_path):
     _, sweep = tiny_sweep
     proc = subprocess.run([*NRT_REPORT, str(sweep), "--out", str(tmp_path)],
@@ -204,6 +206,7 @@ def test_report_draws_one_curve_per_sweep_setting(tiny_sweep, tmp_path):
     assert "Best accuracy/time frontier" in proc.stdout
 
 
+@pytest.mark.slow
 def test_eval_of_a_trained_run_and_export_at_a_chosen_resolution(tiny_sweep, tiny_dataset):
     out, sweep = tiny_sweep
     run = sweep / "0"

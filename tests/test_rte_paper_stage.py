@@ -325,6 +325,7 @@ def test_only_weighted_objectives_are_built(tmp_path, monkeypatch, weights, buil
     assert set(called) == built
 
 
+@pytest.mark.slow
 def test_furnace_forward_solve_converges_to_the_environment():
     """White furnace in forward mode: sigma_a = 0, random sigma_s, HG g = 0.5, constant
     environment c. The exact solution L = c is constant, so the in-scattering estimate has
