@@ -1,11 +1,12 @@
 """The medium of split stage 2: the EA density modulated on voxels, coarse to fine.
 
-``sigma_a = rho exp(a)``, ``sigma_s = rho exp(s)`` per RGB channel (grey scenes:
-``sigma_t = rho exp(t)`` with ``albedo = sigmoid(b)`` per channel), ``g`` one shared value
-(``phase=hg``) or ``G_MAX tanh(h)`` per voxel (``varying_hg``), as in
-:class:`~nrt.modules.medium.NeuralMedium`, whose heads this class shares. ``rho`` is the
-frozen EA density baked once onto ``R``^3 cells (:meth:`set_density`); the modulation
-``(a, s[, h])`` lives on a coarser grid that doubles during training
+``sigma_t = rho exp(t)`` per channel (one when grey) and ``albedo = sigmoid(b)``
+(``parametrization=extinction``, stage 2's default; ``scattering``: ``sigma_a = rho
+exp(a)``, ``sigma_s = rho exp(s)``), ``g`` one shared value (``phase=hg``) or ``G_MAX
+tanh(h)`` per voxel (``varying_hg``), as in :class:`~nrt.modules.medium.NeuralMedium`,
+whose heads this class shares. ``rho`` is the frozen EA density baked once onto ``R``^3
+cells (:meth:`set_density`); the modulation (exponents and logits) lives on a coarser
+grid that doubles during training
 (:mod:`nrt.modules.coarse_to_fine`, as the path-tracing baseline does).
 
 Transport queries the medium many times per step (shadow rays, marches), so the properties
