@@ -151,6 +151,22 @@ def _move_into_place(tmp: Path, out_dir: Path) -> None:
     os.replace(tmp, out_dir)
 
 
+def is_rendered(spec: dict, data_root: str | Path) -> bool:
+    """Whether the cache under ``data_root`` holds the complete dataset of ``spec``."""
+    return (dataset_folder(spec, data_root) / "scene.json").is_file()
+
+
+def ensure_rendered(spec: dict, data_root: str | Path, variant: str = "auto",
+                    progress: bool = True) -> Path:
+    """The dataset folder of a resolved ``spec`` in the cache under ``data_root`` (keyed by
+    the spec's hash), rendering it first when missing."""
+    folder = dataset_folder(spec, data_root)
+    if is_rendered(spec, data_root):
+        log.info("Dataset of '%s' is up to date: %s", spec["name"], folder)
+        return folder
+    return render_dataset(spec, folder, variant=variant, progress=progress)
+
+
 def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "auto",
                    progress: bool = True) -> Path:
     """The dataset folder of a scene config: ``scene.path`` as given, else the cached
@@ -162,9 +178,4 @@ def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "au
                                "Point scene.path at an existing folder (README \"Data format\") or "
                                "set scene.path=null to render the scene.")
         return folder
-    spec = resolve_scene(scene_cfg)
-    folder = dataset_folder(spec, data_root)
-    if (folder / "scene.json").is_file():
-        log.info("Dataset of '%s' is up to date: %s", spec["name"], folder)
-        return folder
-    return render_dataset(spec, folder, variant=variant, progress=progress)
+    return ensure_rendered(resolve_scene(scene_cfg), data_root, variant, progress)
