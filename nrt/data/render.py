@@ -170,7 +170,15 @@ def ensure_rendered(spec: dict, data_root: str | Path, variant: str = "auto",
 def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "auto",
                    progress: bool = True) -> Path:
     """The dataset folder of a scene config: ``scene.path`` as given, else the cached
-    render of its resolved spec, rendering it first when missing."""
+    render of its resolved spec, rendering it first when missing. A family of scenes
+    (``scene.family``) is no one dataset: :func:`nrt.data.family.ensure_family` renders it."""
+    if scene_cfg.get("family") is not None:
+        raise SceneError(
+            f"Scene '{scene_cfg.get('name')}' is a family of scenes (scene.family), not one "
+            "dataset. `nrt-data scene=<family>` renders its members and prints the family "
+            "folder, whose family.json lists every member's dataset folder; use one member "
+            "with scene.path=<member folder> scene.name=<member name>. Training over a whole "
+            "family (the generative auto-decoder) is not built yet.")
     if scene_cfg.get("path"):
         folder = Path(str(scene_cfg["path"])).expanduser()
         if not folder.is_dir():
