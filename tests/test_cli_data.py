@@ -128,7 +128,13 @@ def test_cfg_job_prints_the_composed_config(runs):
 
 @pytest.mark.parametrize("key", list(MISTAKES))
 def test_user_mistake_is_one_paragraph_and_exit_status_2(runs, key):
-    proc, cwd = runs[key]
+    assert_refused_before_rendering(*runs[key], key)
+
+
+def assert_refused_before_rendering(proc: subprocess.CompletedProcess, cwd: Path, key: str
+                                    ) -> None:
+    """``nrt-data`` ended with one ``nrt: error:`` paragraph naming ``scene.<key>``, exit
+    status 2, nothing rendered, and the error kept in the run's log."""
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert "Traceback" not in proc.stderr + proc.stdout
     assert proc.stdout == ""

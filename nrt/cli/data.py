@@ -1,4 +1,6 @@
 """``nrt-data``: render (or find in the cache) the dataset of a scene and print its folder.
+For a family of scenes (``scene=family``) it renders the members missing from the cache and
+prints the family folder (its ``family.json`` lists the members' dataset folders).
 
 Only the folder goes to stdout (``DATA=$(nrt-data scene=X)``); logs go to stderr. The
 rendering stack (torch, Mitsuba) is imported inside the task, so that ``--cfg``, ``--help``
@@ -13,11 +15,13 @@ from nrt.cli.common import run_app
 
 
 def render_task(cfg: DictConfig) -> str:
+    from nrt.data.family import ensure_family
     from nrt.data.render import ensure_dataset
 
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
-    folder = ensure_dataset(scene, cfg.paths.data_dir, variant=cfg.render.variant,
-                            progress=cfg.render.progress)
+    ensure = ensure_family if scene.get("family") is not None else ensure_dataset
+    folder = ensure(scene, cfg.paths.data_dir, variant=cfg.render.variant,
+                    progress=cfg.render.progress)
     print(folder, flush=True)
     return str(folder)
 

@@ -151,10 +151,34 @@ def _move_into_place(tmp: Path, out_dir: Path) -> None:
     os.replace(tmp, out_dir)
 
 
+def is_rendered(spec: dict, data_root: str | Path) -> bool:
+    """Whether the cache under ``data_root`` holds the complete dataset of ``spec``."""
+    return (dataset_folder(spec, data_root) / "scene.json").is_file()
+
+
+def ensure_rendered(spec: dict, data_root: str | Path, variant: str = "auto",
+                    progress: bool = True) -> Path:
+    """The dataset folder of a resolved ``spec`` in the cache under ``data_root`` (keyed by
+    the spec's hash), rendering it first when missing."""
+    folder = dataset_folder(spec, data_root)
+    if is_rendered(spec, data_root):
+        log.info("Dataset of '%s' is up to date: %s", spec["name"], folder)
+        return folder
+    return render_dataset(spec, folder, variant=variant, progress=progress)
+
+
 def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "auto",
                    progress: bool = True) -> Path:
     """The dataset folder of a scene config: ``scene.path`` as given, else the cached
-    render of its resolved spec, rendering it first when missing."""
+    render of its resolved spec, rendering it first when missing. A family of scenes
+    (``scene.family``) is no one dataset: :func:`nrt.data.family.ensure_family` renders it."""
+    if scene_cfg.get("family") is not None:
+        raise SceneError(
+            f"Scene '{scene_cfg.get('name')}' is a family of scenes (scene.family), not one "
+            "dataset. `nrt-data scene=<family>` renders its members and prints the family "
+            "folder, whose family.json lists every member's dataset folder; use one member "
+            "with scene.path=<member folder> scene.name=<member name>. Training over a whole "
+            "family (the generative auto-decoder) is not built yet.")
     if scene_cfg.get("path"):
         folder = Path(str(scene_cfg["path"])).expanduser()
         if not folder.is_dir():
@@ -162,9 +186,4 @@ def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "au
                                "Point scene.path at an existing folder (README \"Data format\") or "
                                "set scene.path=null to render the scene.")
         return folder
-    spec = resolve_scene(scene_cfg)
-    folder = dataset_folder(spec, data_root)
-    if (folder / "scene.json").is_file():
-        log.info("Dataset of '%s' is up to date: %s", spec["name"], folder)
-        return folder
-    return render_dataset(spec, folder, variant=variant, progress=progress)
+    return ensure_rendered(resolve_scene(scene_cfg), data_root, variant, progress)
