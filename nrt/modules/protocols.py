@@ -114,7 +114,7 @@ def build(factory: Callable, protocol: type, group: str, needs: str, *args, **kw
     where = f"The protocol: {protocol.__name__} in nrt/modules/protocols.py."
     try:
         inspect.signature(factory).bind(*args, **kwargs)
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:  # ValueError: a partial's own keywords misfit
         raise ConfigError(f"model/{group}: {_name(factory)} cannot be built as this stage "
                           f"builds its {group} ({exc}). {needs}. {where}") from None
     component = factory(*args, **kwargs)
