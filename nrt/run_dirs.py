@@ -6,7 +6,9 @@ A resumed run must not overwrite what the first one wrote: its Hydra config goes
 (:func:`resume_tag`); TensorBoard adds new event files beside the old ones.
 
 A start that fails (a config mistake, a missing checkpoint) leaves nothing behind:
-:func:`discard_failed_start` removes the folder it created, or a resumed run's config copy.
+:func:`discard_failed_start` removes the folder it created, or a resumed run's config copy;
+in a multirun the job's folder ``<sweep>/<n>``, and the sweep's folder
+``outputs/multirun/<timestamp>-<pid>`` (:func:`sweep_dir`) when no job left anything in it.
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ RUN_FILE = "run.json"
 """What nrt-train records about a run (stage, scene, dataset, environments, exports)."""
 
 RESUMED_PREFIX = "resumed-"
+
+SWEEP_FILE = "multirun.yaml"
+"""What Hydra writes into a sweep's folder before its first job."""
 
 _chosen: dict[tuple[str, str], str] = {}
 _tags: dict[str, str] = {}
@@ -55,6 +60,15 @@ def run_dir(base: str, resume) -> str:
     return _chosen[key]
 
 
+def sweep_dir(base: str) -> str:
+    """Resolver ``${nrt_sweep_dir:base}``: ``<base>/<timestamp>-<pid>``, the same answer for
+    the whole process (Hydra resolves it for the sweep and again for each job)."""
+    key = ("sweep", str(base))
+    if key not in _chosen:
+        _chosen[key] = new_run_dir(base)
+    return _chosen[key]
+
+
 def resume_tag(resume) -> str:
     """Resolver ``${nrt_resume_tag:resume}``: ``""`` for a new run, else ``resumed-<time>``."""
     if resume in (None, False):
@@ -63,23 +77,37 @@ def resume_tag(resume) -> str:
                             f"{RESUMED_PREFIX}{time.strftime('%Y-%m-%d_%H-%M-%S')}")
 
 
-def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: float) -> None:
+def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: float,
+                         sweep_job: bool = False) -> None:
     """Undo what a start that failed wrote into ``run_dir``, unless it saved a checkpoint
     after ``since`` (then it trained, and its folder is a run): a folder that this process
     named (:func:`new_run_dir`) goes, with the folders above it that did not exist before
-    and are empty now; in a resumed run's folder only this start's config copy
+    and are empty now; a multirun job's folder (``sweep_job``: Hydra made ``<sweep>/<n>`` for
+    this job) goes, and its sweep's folder too when it holds nothing but Hydra's
+    ``multirun.yaml``; in a resumed run's folder only this start's config copy
     (``config_subdir``, ``.hydra/resumed-<time>``) goes."""
     run_dir = Path(os.path.abspath(run_dir))
     if any(p.stat().st_mtime >= since for p in (run_dir / "checkpoints").glob("*.ckpt")):
         return
     if run_dir in _created:
+        _remove_created(run_dir)
+    elif sweep_job:
         shutil.rmtree(run_dir, ignore_errors=True)
-        parent = run_dir.parent
-        while parent != _created[run_dir] and parent.is_dir() and not any(parent.iterdir()):
-            parent.rmdir()
-            parent = parent.parent
+        sweep = run_dir.parent
+        if sweep in _created and all(p.name == SWEEP_FILE for p in sweep.iterdir()):
+            _remove_created(sweep)
     elif config_subdir and Path(config_subdir).name.startswith(RESUMED_PREFIX):
         shutil.rmtree(run_dir / config_subdir, ignore_errors=True)
+
+
+def _remove_created(folder: Path) -> None:
+    """Remove a folder :func:`new_run_dir` named, and the folders above it that did not
+    exist before and are empty now."""
+    shutil.rmtree(folder, ignore_errors=True)
+    parent = folder.parent
+    while parent != _created[folder] and parent.is_dir() and not any(parent.iterdir()):
+        parent.rmdir()
+        parent = parent.parent
 
 
 def read_run_info(run_dir: str | Path) -> dict:

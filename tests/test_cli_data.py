@@ -107,10 +107,11 @@ def test_finds_the_dataset_rendered_in_process(runs, tiny_dataset):
     assert file_times(tiny_dataset) == runs["tiny_files"]
 
 
-def test_unknown_key_is_hydras_clear_error(runs):
+def test_unknown_key_is_one_paragraph_and_exit_status_2(runs):
     proc, cwd = runs["unknown_key"]
-    assert proc.returncode != 0
-    assert "Could not override 'foo'" in proc.stderr and "+foo=1" in proc.stderr
+    assert proc.returncode == 2, proc.stderr
+    assert "nrt: error: foo=1: the config has no key 'foo'" in proc.stderr
+    assert "+foo=<value>" in proc.stderr and "nrt-data --cfg job" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (cwd / "outputs" / "datasets").exists()
 

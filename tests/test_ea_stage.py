@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
 from nrt.modules.ea import EAModule
-from nrt.run_dirs import discard_failed_start, new_run_dir
+from nrt.run_dirs import SWEEP_FILE, discard_failed_start, new_run_dir, sweep_dir
 
 
 @pytest.mark.slow
@@ -84,6 +84,35 @@ def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
     assert proc.returncode == 2
     assert "nrt: error: resume=True" in proc.stderr and "Traceback" not in proc.stderr
     assert list(tmp_path.iterdir()) == []  # no empty run folder left behind
+
+
+def test_a_failed_multirun_start_leaves_no_folder(tmp_path):
+    """``nrt-train -m``: the first job's start fails (no EA checkpoint), the sweep ends with
+    ``nrt: error:`` and status 2, and neither the job's folder nor the sweep's remains."""
+    cmd, env = train_command(tmp_path, tmp_path / "datasets", "seed=0,1",
+                             "init.ea_ckpt=no/such.ckpt", stage="rte")
+    proc = subprocess.run([*cmd[:3], "-m", *cmd[3:]], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "nrt: error: init.ea_ckpt='no/such.ckpt'" in proc.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_sweep_job_removes_its_folder_and_an_empty_sweep(tmp_path):
+    """A sweep keeps the folders of the jobs that ran; the sweep's folder goes with its last
+    job when only Hydra's multirun.yaml is left (and the folders above it that it made)."""
+    sweep = Path(sweep_dir(str(tmp_path / "multirun")))
+    for job in ("0", "1"):
+        (sweep / job / ".hydra").mkdir(parents=True)
+    (sweep / SWEEP_FILE).write_text("hydra: {}")
+    (sweep / "0" / "run.json").write_text("{}")  # job 0 ran
+    discard_failed_start(sweep / "1", ".hydra", time.time(), sweep_job=True)
+    assert sorted(p.name for p in sweep.iterdir()) == ["0", SWEEP_FILE]
+    alone = Path(sweep_dir(str(tmp_path / "out" / "multirun")))
+    (alone / "0" / ".hydra").mkdir(parents=True)
+    (alone / SWEEP_FILE).write_text("hydra: {}")
+    discard_failed_start(alone / "0", ".hydra", time.time(), sweep_job=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["multirun"]
 
 
 def test_a_failed_start_removes_only_what_it_wrote(tmp_path):

@@ -13,6 +13,7 @@ quadrature's own, separately measured, error. Everything is seeded and runs in s
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import numpy as np
 import pytest
@@ -31,7 +32,13 @@ from nrt.losses.boundary import boundary_loss
 from nrt.losses.rte import rte_loss, rte_residuals
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.light_field import LOG_RADIANCE_MAX, LightField
-from nrt.modules.medium import EXPONENT_RANGE, GroundTruthMedium, NeuralMedium
+from nrt.modules.medium import (
+    EXPONENT_RANGE,
+    GridModulation,
+    GroundTruthMedium,
+    NeuralMedium,
+)
+from nrt.modules.siren import Siren
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap
 from nrt.physics.inscatter import inscattered_radiance
@@ -499,8 +506,9 @@ def test_medium_heads_follow_the_effects(chromatic, modulation):
     k = 6 if chromatic else 4
     pts = uniform_box_points(300, SLAB)
     for phase, width in (("isotropic", k), ("hg", k), ("varying_hg", k + 1)):
-        medium = NeuralMedium({"phase": phase, "chromatic": chromatic}, modulation=modulation,
-                              siren={"hidden": 16, "layers": 2}, grid_resolution=5)
+        network = (partial(Siren, hidden=16, layers=2) if modulation == "siren"
+                   else partial(GridModulation, resolution=5))
+        medium = NeuralMedium({"phase": phase, "chromatic": chromatic}, modulation=network)
         medium.bbox.copy_(SLAB)
         if modulation == "grid":
             with torch.no_grad():
@@ -565,8 +573,8 @@ def test_grey_media_have_one_extinction_channel_and_an_rgb_albedo():
     torch.testing.assert_close(props.sigma_s, grids["sigma_s"].double(), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(props.sigma_a, grids["sigma_a"].double(), rtol=1e-5, atol=1e-6)
 
-    fresh = NeuralMedium({"phase": "hg", "chromatic": False}, modulation="grid",
-                         grid_resolution=3, init_albedo=0.7)
+    fresh = NeuralMedium({"phase": "hg", "chromatic": False},
+                         modulation=partial(GridModulation, resolution=3), init_albedo=0.7)
     start = fresh(uniform_box_points(50, CUBE))
     torch.testing.assert_close(start.sigma_t, torch.ones(50, 1))
     torch.testing.assert_close(start.albedo, torch.full((50, 3), 0.7))
@@ -576,8 +584,8 @@ def test_grey_media_have_one_extinction_channel_and_an_rgb_albedo():
 def test_medium_exponents_are_clamped(fill):
     """Huge modulation outputs: sigma saturates at ``exp(EXPONENT_RANGE)`` (finite, > 0),
     g at +-G_MAX, albedo and gradients stay finite."""
-    medium = NeuralMedium({"phase": "varying_hg", "chromatic": True}, modulation="grid",
-                          grid_resolution=4)
+    medium = NeuralMedium({"phase": "varying_hg", "chromatic": True},
+                          modulation=partial(GridModulation, resolution=4))
     with torch.no_grad():
         medium.modulation.values.fill_(fill)
     props = medium(uniform_box_points(64, CUBE))

@@ -267,7 +267,7 @@ def test_voxel_medium_composes_the_neural_heads_on_its_cells(effects, parametriz
     modulation; between them they interpolate linearly; grey media keep one sigma_t
     channel and an RGB albedo; g exists only for an HG phase."""
     torch.manual_seed(5)
-    medium = VoxelMedium(effects, resolution=4, density_resolution=8,
+    medium = VoxelMedium(effects, resolutions=[4], density_resolution=8,
                          parametrization=parametrization)
     medium.set_density(lambda p: 1 + p[:, 0] ** 2)
     start = medium(cell_centres(8, medium.bbox).reshape(-1, 3))  # sigma_t = rho, albedo 0.8

@@ -1,14 +1,17 @@
 """What every nrt command does before and around its Hydra task.
 
 - registers the OmegaConf resolvers the configs use (``nrt_pid``, ``nrt_run_dir``,
-  ``nrt_eval_dir``, ``nrt_resume_tag``);
+  ``nrt_sweep_dir``, ``nrt_eval_dir``, ``nrt_resume_tag``);
 - tunes glibc malloc so large per-step temporaries are reused instead of being mmap'd
   and unmapped every step (DESIGN.md section 4: 3-4x faster training steps on CPU);
 - lets idle OpenMP threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``, unless set):
   on a machine whose cores are shared, spinning threads made a training step 10x slower
   (2.2 s against 0.19 s, measured with another process busy on one of two cores);
-- turns :class:`~nrt.errors.NrtError` into a one-paragraph message and exit status 2
-  instead of a traceback, and removes the run folder such a failed start created
+- turns :class:`~nrt.errors.NrtError` and every config mistake that Hydra or OmegaConf
+  reports (an unknown key or option, an unreadable override, an unresolvable
+  interpolation, a ``_target_`` that cannot be built: :mod:`nrt.cli.config_errors`) into a
+  one-paragraph ``nrt: error:`` message and exit status 2 instead of a traceback, and
+  removes the run folder such a failed start created
   (:func:`nrt.run_dirs.discard_failed_start`).
 """
 
@@ -22,13 +25,15 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from nrt import run_dirs
+from nrt.cli.config_errors import config_mistake
 from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)
@@ -36,6 +41,9 @@ log = logging.getLogger(__name__)
 CONFIG_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+FULL_ERROR = "HYDRA_FULL_ERROR"
+"""With it set, Hydra re-raises what fails instead of printing it and exiting with status 1."""
 
 
 def tune_allocator() -> bool:
@@ -63,6 +71,8 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("nrt_run_dir", run_dirs.run_dir)
     if not OmegaConf.has_resolver("nrt_eval_dir"):
         OmegaConf.register_new_resolver("nrt_eval_dir", run_dirs.eval_dir)
+    if not OmegaConf.has_resolver("nrt_sweep_dir"):
+        OmegaConf.register_new_resolver("nrt_sweep_dir", run_dirs.sweep_dir)
     if not OmegaConf.has_resolver("nrt_resume_tag"):
         OmegaConf.register_new_resolver("nrt_resume_tag", run_dirs.resume_tag)
 
@@ -76,8 +86,22 @@ def _log_to_files(message: str) -> None:
             handler.handle(record)
 
 
+def _set_env(name: str, value: str | None) -> None:
+    if value is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = value
+
+
+def _fail(exc: NrtError) -> NoReturn:
+    print(f"\nnrt: error: {exc}", file=sys.stderr)
+    sys.exit(2)
+
+
 def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
-    """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml``."""
+    """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml`` (the command
+    ``nrt-<config_name>``); config mistakes and :class:`NrtError` end in ``nrt: error:``
+    with status 2."""
     if not CONFIG_DIR.is_dir():
         sys.exit(f"nrt: config folder '{CONFIG_DIR}' not found. Install nrt from its source "
                  "checkout in editable mode (pip install -e .), which keeps conf/ beside nrt/.")
@@ -85,22 +109,41 @@ def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
     tune_allocator()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch starts OpenMP
     started = time.time()
+    command = f"nrt-{config_name}"
+    # Hydra hands us what fails while it composes the config only with HYDRA_FULL_ERROR
+    # set. The task itself runs with the user's setting, so that Hydra reports a bug in it
+    # as before; a user who set HYDRA_FULL_ERROR sees Hydra's own errors.
+    user_full_error = os.environ.get(FULL_ERROR)
+    os.environ[FULL_ERROR] = "1"
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def _main(cfg: DictConfig):
+        _set_env(FULL_ERROR, user_full_error)
         try:
             try:
-                return task(cfg)
-            except InstantiationException as exc:  # a component's own NrtError, unwrapped
-                if isinstance(exc.__cause__, NrtError):
-                    raise exc.__cause__ from None
-                raise
+                # every interpolation resolves, or the mistake names its key, before the task
+                OmegaConf.to_container(cfg, resolve=True)
+                result = task(cfg)
+            except Exception as exc:
+                mistake = config_mistake(exc, command)
+                if mistake is None:
+                    raise
+                raise mistake from None
         except NrtError as exc:
             _log_to_files(str(exc))
             hydra_cfg = HydraConfig.get()
             run_dirs.discard_failed_start(hydra_cfg.runtime.output_dir, hydra_cfg.output_subdir,
-                                          started)
-            print(f"\nnrt: error: {exc}", file=sys.stderr)
-            sys.exit(2)
+                                          started, sweep_job=hydra_cfg.mode == RunMode.MULTIRUN)
+            _fail(exc)
+        os.environ[FULL_ERROR] = "1"  # a multirun composes the next job's config
+        return result
 
-    _main()
+    try:
+        _main()
+    except Exception as exc:
+        mistake = None if user_full_error else config_mistake(exc, command)
+        if mistake is None:
+            raise
+        _fail(mistake)
+    finally:
+        _set_env(FULL_ERROR, user_full_error)

@@ -14,7 +14,8 @@ Units: sigma per unit world length; g in [-G_MAX, G_MAX].
   ``albedo = sigmoid(b(x))`` (RGB), ``sigma_s = sigma_t albedo``, ``sigma_a = sigma_t (1 -
   albedo)``. Both:
   ``g = G_MAX tanh(h(x))``, with ``rho`` the EA density (or 1 without a first stage) and
-  the exponents and logits from a SIREN or, for the paper's ablation, a trilinear grid.
+  the exponents and logits from a modulation network: a SIREN (``model/medium=siren``) or,
+  for the paper's ablation, a trilinear grid (:class:`GridModulation`, ``model/medium=grid``).
   Exponents are clamped so exp never overflows.
 - :class:`GroundTruthMedium`: the dataset's grids (forward mode, tests); a grey one reads
   them as Mitsuba does: trilinear sigma_t (channel 0) and trilinear albedo.
@@ -23,13 +24,13 @@ Units: sigma per unit world length; g in [-G_MAX, G_MAX].
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 from nrt.errors import ConfigError
-from nrt.modules.siren import Siren
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, sample_grid
 
@@ -100,13 +101,18 @@ class Medium(nn.Module):
 
 
 class NeuralMedium(Medium):
-    """The learned medium: the EA density modulated by a SIREN (or a grid)."""
+    """The learned medium: the EA density modulated by a network. ``modulation(in_dim,
+    out_dim)`` builds that network (a SIREN or a :class:`GridModulation`, as the config
+    ``model/medium`` gives it) from unit-box points (3) to the exponents and logits."""
 
     def __init__(self, effects: dict, density: nn.Module | None = None,
-                 modulation: str = "siren", siren: dict | None = None,
-                 grid_resolution: int = 32, init_albedo: float = 0.8,
-                 parametrization: str = "scattering"):
+                 modulation: Callable[[int, int], nn.Module] | None = None,
+                 init_albedo: float = 0.8, parametrization: str = "scattering"):
         super().__init__(effects)
+        if not callable(modulation):
+            raise ConfigError(f"model.medium.modulation={modulation}: the modulation network "
+                              "is a component chosen by config group: model/medium=siren or "
+                              "model/medium=grid (conf/model/medium/).")
         if not 0.0 < init_albedo < 1.0:
             raise ConfigError(f"model.medium.init_albedo must lie in (0, 1), got "
                               f"{init_albedo}.")
@@ -118,13 +124,7 @@ class NeuralMedium(Medium):
         self.by_extinction = self.channels == 1 or parametrization == "extinction"
         self.g_index = self.channels + 3 if self.by_extinction else 6
         n_out = self.g_index + (self.phase == "field")
-        if modulation == "siren":
-            self.modulation: nn.Module = Siren(3, n_out, **(siren or {}))
-        elif modulation == "grid":
-            self.modulation = _GridModulation(grid_resolution, n_out)
-        else:
-            raise ConfigError(f"model.medium.modulation must be 'siren' or 'grid', got "
-                              f"'{modulation}'.")
+        self.modulation: nn.Module = modulation(3, n_out)
         self.g_shared = nn.Parameter(torch.zeros(())) if self.phase == "shared" else None
         # start: sigma_t = rho, albedo = init_albedo (a, s: exp(a) + exp(s) = 1)
         offsets = ([0.0] * self.channels + [math.log(init_albedo / (1 - init_albedo))] * 3
@@ -163,12 +163,15 @@ class NeuralMedium(Medium):
         return MediumProperties(rho * torch.exp(a), rho * torch.exp(s), torch.sigmoid(s - a), g)
 
 
-class _GridModulation(nn.Module):
-    """A dense trilinear grid of modulation values on [-1, 1]^3 (the paper's grid ablation)."""
+class GridModulation(nn.Module):
+    """A dense trilinear grid of ``out_dim`` modulation values per cell on [-1, 1]^3 (the
+    paper's grid ablation; the voxel medium's modulation), zeros at the start."""
 
-    def __init__(self, resolution: int, n_out: int):
+    def __init__(self, in_dim: int, out_dim: int, resolution: int = 32):
         super().__init__()
-        self.values = nn.Parameter(torch.zeros(resolution, resolution, resolution, n_out))
+        if in_dim != 3:
+            raise ConfigError(f"a grid modulation takes 3-d points, got in_dim={in_dim}.")
+        self.values = nn.Parameter(torch.zeros(resolution, resolution, resolution, out_dim))
         self.register_buffer("unit_box", torch.tensor([[-1.0] * 3, [1.0] * 3]))
 
     def forward(self, unit: torch.Tensor) -> torch.Tensor:

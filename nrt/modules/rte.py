@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -33,9 +34,10 @@ from nrt.losses.observation import exit_radiance, observation_loss
 from nrt.losses.rte import DirectSource, rte_loss
 from nrt.losses.vre import transmitted_background, vre_loss, vre_render
 from nrt.metrics import psnr
+from nrt.modules.components import as_factory, factory_config, legacy_config
 from nrt.modules.ea import load_ea_field
-from nrt.modules.light_field import LightField
-from nrt.modules.medium import GroundTruthMedium, Medium, NeuralMedium
+from nrt.modules.medium import GroundTruthMedium, Medium
+from nrt.modules.protocols import ModulatedMedium, RadianceField, build
 from nrt.modules.schedules import scheduled
 from nrt.modules.stage import Stage, check_learning_rates
 from nrt.modules.tensorboard import log_image
@@ -62,8 +64,10 @@ class RadiativeTransferStage(Stage):
     the training environment and its suns and emitters as known lights, the medium (the
     dataset's ground truth in forward mode), the validation baselines, the property grids
     that the metric callbacks score and the ``medium_grids.npz`` export. A subclass builds
-    ``self.light`` (with ``bbox`` and ``radiance_scale`` buffers) and ``self.medium`` and
-    implements training and :meth:`predict_pixels`."""
+    ``self.light`` (with ``bbox`` and ``radiance_scale`` buffers) and, when
+    :attr:`learns_medium`, ``self.medium``, from the factories its config groups give
+    (``model/light_field``, ``model/medium``; :mod:`nrt.modules.components`), and implements
+    training and :meth:`predict_pixels`."""
 
     def __init__(self, effects: dict, density: dict, sun: dict | None,
                  property_resolution: int | None):
@@ -77,6 +81,8 @@ class RadiativeTransferStage(Stage):
         if density["source"] not in DENSITY_SOURCES:
             raise NrtError(f"init.source must be one of {list(DENSITY_SOURCES)}, got "
                            f"'{density['source']}'.")
+        self.learns_medium = density["source"] != "ground_truth"
+        """False in forward mode, whose medium is the dataset's ground truth (set up later)."""
         self.medium: Medium | None = None
         self.envmap: EnvironmentMap | None = None  # the training environment E
         self.env_rest: EnvironmentMap | None = None  # E without its sun: the inflow of L
@@ -204,7 +210,7 @@ class RadiativeTransferStage(Stage):
 
     def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
         """The learned medium on R^3 cells (ground-truth layout); None in forward mode."""
-        if not isinstance(self.medium, NeuralMedium):
+        if not self.learns_medium:
             return None
         return self.medium.grids(resolution)
 
@@ -215,7 +221,7 @@ class RadiativeTransferStage(Stage):
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) at ``property_resolution``
         (default: the ground truth's, else 64)."""
-        if not isinstance(self.medium, NeuralMedium):
+        if not self.learns_medium:
             return {}
         res = self.grid_resolution(self.hparams.property_resolution, 64)
         path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, self.property_grids(res),
@@ -223,40 +229,68 @@ class RadiativeTransferStage(Stage):
         return {"medium_grids": str(path)}
 
 
+FITS = ("The paper's formulation (experiment=rte_paper) takes model/light_field=siren and "
+        "model/medium=siren or grid; the SH-grid light field and the voxel medium belong to "
+        "the split stage (stage=rte without experiment=rte_paper)")
+
+
+def legacy_medium(keywords: dict) -> dict:
+    """A checkpoint's medium from before it was a component: ``modulation: siren|grid`` with
+    ``siren: {...}`` or ``grid_resolution``, ``init_albedo`` (and ``parametrization``)."""
+    rest = {k: v for k, v in keywords.items()
+            if k not in ("modulation", "siren", "grid_resolution")}
+    if keywords.get("modulation", "siren") == "grid":
+        modulation = {"_target_": "nrt.modules.medium.GridModulation",
+                      "resolution": keywords.get("grid_resolution", 32)}
+    else:
+        modulation = {"_target_": "nrt.modules.siren.Siren", **keywords.get("siren", {})}
+    return {"_target_": "nrt.modules.medium.NeuralMedium", "_partial_": True,
+            "modulation": {**modulation, "_partial_": True}, **rest}
+
+
 class RTEModule(RadiativeTransferStage):
     """Light field + medium trained on the RTE, boundary, observation and VRE objectives."""
 
-    def __init__(self, effects: dict, light_field: dict, medium: dict, density: dict,
+    def __init__(self, effects: dict, light_field: Callable[..., RadianceField] | dict,
+                 medium: Callable[..., ModulatedMedium] | dict, density: dict,
                  weights: dict, samples: dict, lr: dict, detach_inscatter: bool = False,
                  lr_final_factor: float = 0.1, medium_warmup: float = 0.0,
                  sun: dict | None = None, grad_clip: float | None = None,
                  eval_chunk: int = 4096,
                  property_resolution: int | None = None):
         super().__init__(effects, density, sun, property_resolution)
+        make_light = as_factory(light_field, "light_field",
+                                legacy_config("nrt.modules.light_field.LightField"))
+        make_medium = as_factory(medium, "medium", legacy_medium)
+        # the hyperparameters record the components' configs: a checkpoint pickles no code
+        light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.check_objectives(weights, OBJECTIVES)
         check_learning_rates(lr, "model.lr")
-        self.light = LightField(**light_field)
-        if density["source"] != "ground_truth":
-            self.medium = self._neural_medium(effects, medium, density)
+        self.light: RadianceField = build(make_light, RadianceField, "light_field", FITS)
+        if self.learns_medium:
+            self.medium = build(make_medium, ModulatedMedium, "medium", FITS, effects,
+                                self._ea_density(density))
         self._density_sampler: DensityPointSampler | None = None
 
     @staticmethod
-    def _neural_medium(effects: dict, medium: dict, density: dict) -> NeuralMedium:
-        ea = None
-        if density["source"] == "ea":
-            ckpt = density.get("ea_ckpt")
-            ea = load_ea_field(ckpt)
-            ea.requires_grad_(bool(density.get("train", False)))
-            log.info("Stage 2 modulates the EA density of %s (%s)", ckpt,
-                     "fine-tuned" if density.get("train") else "frozen")
-        return NeuralMedium(effects, ea, **medium)
+    def _ea_density(density: dict) -> torch.nn.Module | None:
+        """The EA field the medium modulates (``init=ea``), frozen or fine-tuned; None for
+        ``init=none``."""
+        if density["source"] != "ea":
+            return None
+        ckpt = density.get("ea_ckpt")
+        ea = load_ea_field(ckpt)
+        ea.requires_grad_(bool(density.get("train", False)))
+        log.info("Stage 2 modulates the EA density of %s (%s)", ckpt,
+                 "fine-tuned" if density.get("train") else "frozen")
+        return ea
 
     def configure_optimizers(self):
         lr = self.hparams.lr
         groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
-        if isinstance(self.medium, NeuralMedium):
+        if self.learns_medium:
             density = self.medium.density_field
             dens_ids = {id(p) for p in density.parameters()} if density is not None else set()
             modulation = [p for p in self.medium.parameters() if id(p) not in dens_ids]

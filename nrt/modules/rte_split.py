@@ -7,8 +7,10 @@ scattered at least once, and only the second is learned:
   scattering by MIS shadow rays (:func:`~nrt.physics.sky_light.sky_inscatter`) and the
   suns' and emitters' by shadow rays (:mod:`~nrt.physics.direct_light`): exact up to
   Monte Carlo noise, and differentiated with respect to the medium;
-- scattered: :class:`~nrt.modules.sh_light_field.SHGridLightField`, SH coefficients on a
-  grid, zero on inflow and smooth in direction, whose in-scattering is exact for HG.
+- scattered: a light field chosen by ``model/light_field`` (the protocol
+  :class:`~nrt.modules.protocols.ScatteredLightField`), by default
+  :class:`~nrt.modules.sh_light_field.SHGridLightField`, SH coefficients on a grid, zero on
+  inflow and smooth in direction, whose in-scattering is exact for HG.
 
 Two objectives (``losses.weights``):
 
@@ -19,9 +21,11 @@ Two objectives (``losses.weights``):
 - ``transport``: the integral form of the RTE for the scattered light
   (:mod:`~nrt.losses.transport`); it trains the light field only.
 
-The medium is :class:`~nrt.modules.voxel_medium.VoxelMedium`: the frozen EA density baked on
-a grid, modulated by a grid that doubles during the run. The SH projection of the
-uncollided light on the light field's grid is refreshed from the current medium every
+The medium is chosen by ``model/medium`` (the protocol
+:class:`~nrt.modules.protocols.VoxelisedMedium`), by default
+:class:`~nrt.modules.voxel_medium.VoxelMedium`: the frozen EA density baked on a grid,
+modulated by a grid that doubles during the run. The SH projection of the uncollided light
+at the light field's cache points is refreshed from the current medium every
 ``samples.uncollided_every`` steps. The photo objective starts after ``light_warmup`` of
 the run, so the medium does not explain light the light field has not learned yet.
 
@@ -33,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 
 import torch
 
@@ -40,25 +45,24 @@ from nrt.losses.observation import exit_radiance
 from nrt.losses.photo import check_tonemap, photo_loss
 from nrt.losses.transport import transport_loss
 from nrt.losses.vre import render_view_rays, transmitted_background
-from nrt.modules.coarse_to_fine import (
-    check_schedule,
-    decaying_lr,
-    resample_parameter,
-    resolution_at,
-)
+from nrt.modules.coarse_to_fine import decaying_lr
+from nrt.modules.components import as_factory, factory_config, legacy_config
 from nrt.modules.ea import load_ea_field
+from nrt.modules.protocols import ScatteredLightField, VoxelisedMedium, build
 from nrt.modules.rte import RadiativeTransferStage
-from nrt.modules.sh_light_field import SHGridLightField
 from nrt.modules.stage import check_learning_rates
-from nrt.modules.voxel_medium import VoxelMedium, Voxels
+from nrt.modules.voxel_medium import Voxels
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.phase import sample_uniform_sphere
 from nrt.physics.sky_light import sky_inscatter, uncollided_sh
-from nrt.physics.volume import cell_centres
 
 log = logging.getLogger(__name__)
 
 OBJECTIVES = ("photo", "transport")
+
+FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
+        "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
+        "paper's formulation (experiment=rte_paper)")
 
 
 def extinction(medium):
@@ -72,30 +76,32 @@ def detached(medium):
 
 
 class SplitRTEModule(RadiativeTransferStage):
-    """Scattered-light SH grid + voxel medium on the photo and transport objectives."""
+    """A scattered-light field and a voxelised medium (by default the SH grid and the voxel
+    medium) on the photo and transport objectives."""
 
-    def __init__(self, effects: dict, light_field: dict, medium: dict, density: dict,
+    def __init__(self, effects: dict, light_field: Callable[..., ScatteredLightField] | dict,
+                 medium: Callable[..., VoxelisedMedium] | dict, density: dict,
                  weights: dict, samples: dict, lr: dict, lr_final_factor: float = 0.1,
                  light_warmup: float = 0.05, photo_tonemap: str = "log",
                  sun: dict | None = None, eval_chunk: int = 4096,
                  property_resolution: int | None = None):
         super().__init__(effects, density, sun, property_resolution)
+        make_light = as_factory(light_field, "light_field",
+                                legacy_config("nrt.modules.sh_light_field.SHGridLightField"))
+        make_medium = as_factory(medium, "medium",
+                                 legacy_config("nrt.modules.voxel_medium.VoxelMedium"))
+        # the hyperparameters record the components' configs: a checkpoint pickles no code
+        light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.check_objectives(weights, OBJECTIVES,
                               " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
-        check_schedule(medium["resolutions"], medium["upsample_at"],
-                       "budget.rte.medium_resolutions / medium_upsample_at")
         check_tonemap(photo_tonemap)
         check_learning_rates(lr, "model.lr")
-        # isotropic in-scattering reads band 0 only: the higher bands would be computed for
-        # nothing (DESIGN.md: simulate only what the scene calls for)
-        degree = 0 if effects.get("phase") == "isotropic" else int(light_field["degree"])
-        self.light = SHGridLightField(degree, int(light_field["resolution"]))
-        if density["source"] != "ground_truth":  # init=none: the modulation alone (rho = 1)
-            self.medium = VoxelMedium(effects, medium["resolutions"][0],
-                                      medium["density_resolution"], medium["init_albedo"],
-                                      medium["parametrization"])
+        self.light: ScatteredLightField = build(make_light, ScatteredLightField, "light_field",
+                                                FITS, effects=effects)
+        if self.learns_medium:  # init=none: the modulation alone (rho = 1)
+            self.medium = build(make_medium, VoxelisedMedium, "medium", FITS, effects)
         self._ea_ckpt = density.get("ea_ckpt")
         self._baked = False
         self._uncollided_fresh = False
@@ -103,19 +109,18 @@ class SplitRTEModule(RadiativeTransferStage):
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
         super().setup(stage)
-        if isinstance(self.medium, VoxelMedium) and self.hparams.density["source"] == "ea" \
+        if self.learns_medium and self.hparams.density["source"] == "ea" \
                 and not self._baked and self._trainer is not None and \
                 self.trainer.datamodule is not None:
-            ea = load_ea_field(self._ea_ckpt).to(self.medium.density.device)
+            ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
             self.medium.set_density(ea.density)  # a resumed run loads the same values
             self._baked = True
-            log.info("Stage 2 modulates the EA density of %s, baked on %d^3 cells",
-                     self._ea_ckpt, self.medium.density.shape[0])
+            log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
 
     def configure_optimizers(self):
         lr = self.hparams.lr
-        groups = [{"params": [self.light.coefficients], "lr": lr["light"]}]
-        if isinstance(self.medium, VoxelMedium):
+        groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
+        if self.learns_medium:
             groups.append({"params": [p for p in self.medium.parameters()], "lr": lr["medium"]})
         opt = torch.optim.Adam(groups)
         sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
@@ -125,7 +130,7 @@ class SplitRTEModule(RadiativeTransferStage):
     def transport_medium(self):
         """The medium as transport reads it: composed voxels (one lookup per query) for the
         learned medium, the ground truth itself in forward mode."""
-        return self.medium.voxels() if isinstance(self.medium, VoxelMedium) else self.medium
+        return self.medium.voxels() if self.learns_medium else self.medium
 
     def inscatter(self, medium):
         """In-scattering of all light for the camera rays' VRE: the sky's and the known
@@ -146,10 +151,10 @@ class SplitRTEModule(RadiativeTransferStage):
 
     @torch.no_grad()
     def refresh_uncollided(self, medium) -> None:
-        """SH projection of the uncollided light at the light field's cell centres."""
+        """SH projection of the uncollided light at the light field's cache points."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
-        pts = cell_centres(self.light.resolution, self.light.bbox).reshape(-1, 3)
+        pts = self.light.cache_points()
         chunk = int(s.get("uncollided_chunk", 2048))
         coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, self.light.bbox,
                                         self.env_rest, self._env_sampler, self.lights,
@@ -161,14 +166,10 @@ class SplitRTEModule(RadiativeTransferStage):
         self._uncollided_fresh = True
 
     def _update_resolution(self) -> None:
-        if not isinstance(self.medium, VoxelMedium):
-            return
-        m = self.hparams.medium
-        res = resolution_at(self.progress(), m["resolutions"], m["upsample_at"])
-        if res != self.medium.resolution:
-            resample_parameter(self.medium.modulation.values, self.optimizers().optimizer, res)
-            log.info("Medium modulation resampled to %d^3 cells at step %d", res,
-                     self.global_step)
+        if self.learns_medium and \
+                self.medium.follow_schedule(self.progress(), self.optimizers().optimizer):
+            log.info("Medium modulation resampled to %d^3 cells at step %d",
+                     self.medium.resolution, self.global_step)
 
     # --------------------------------------------------------------- training
     def objective(self, name: str, batch: dict, medium) -> torch.Tensor:
@@ -187,8 +188,7 @@ class SplitRTEModule(RadiativeTransferStage):
                           self.hparams.photo_tonemap)
 
     def active_weights(self) -> dict[str, float]:
-        photo_on = self.progress() >= self.hparams.light_warmup and \
-            isinstance(self.medium, VoxelMedium)
+        photo_on = self.progress() >= self.hparams.light_warmup and self.learns_medium
         return {k: float(w) for k, w in self.hparams.weights.items()
                 if float(w) > 0 and (k != "photo" or photo_on)}
 
@@ -203,7 +203,7 @@ class SplitRTEModule(RadiativeTransferStage):
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
         total = self.backward_objectives(lambda name: self.objective(name, batch, medium))
-        if isinstance(self.medium, VoxelMedium):
+        if self.learns_medium:
             self.log("train/medium_resolution", float(self.medium.resolution))
         opt.step()
         self.lr_schedulers().step()
@@ -231,9 +231,6 @@ class SplitRTEModule(RadiativeTransferStage):
 
     # ------------------------------------------------------------------ resume
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Resize the modulation grid to the checkpoint's resolution before its state is
-        loaded; the baked density comes with the state (no EA field needed)."""
-        values = checkpoint.get("state_dict", {}).get("medium.modulation.values")
-        if values is not None and isinstance(self.medium, VoxelMedium):
-            self.medium.modulation.values.data = torch.zeros_like(values)
+        """The baked density comes with the state (no EA field needed); the medium resizes
+        its grid to the checkpoint's itself (:class:`~nrt.modules.voxel_medium.VoxelMedium`)."""
         self._baked = True

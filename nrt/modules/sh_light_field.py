@@ -15,6 +15,9 @@ The field also holds ``uncollided``: the SH projection of ``L_u`` on the same gr
 refreshed from the current medium by the stage (:meth:`set_uncollided`). With it the
 in-scattering of *all* light, ``sum g^l (u_lm + c_lm) Y_lm(w)``, costs two grid lookups,
 which makes the transport target (:mod:`nrt.losses.transport`) cheap to march.
+
+It is the split stage's default light field (``conf/model/light_field/sh_grid.yaml``; the
+protocol: :class:`~nrt.modules.protocols.ScatteredLightField`).
 """
 
 from __future__ import annotations
@@ -24,17 +27,21 @@ from torch import nn
 
 from nrt.errors import ConfigError
 from nrt.physics.sh import num_coefficients, phase_band_factors, sh_basis
-from nrt.physics.volume import sample_grid
+from nrt.physics.volume import cell_centres, sample_grid
 
 
 class SHGridLightField(nn.Module):
-    """``L_s(x, w)`` (..., 3) from SH coefficients of ``degree`` on ``resolution``^3 cells."""
+    """``L_s(x, w)`` (..., 3) from SH coefficients of ``degree`` on ``resolution``^3 cells.
+    With the scene's ``effects``, an isotropic phase keeps band 0 only: its in-scattering
+    reads no other band (DESIGN.md: simulate only what the scene calls for)."""
 
-    def __init__(self, degree: int = 2, resolution: int = 16):
+    def __init__(self, degree: int = 2, resolution: int = 16, effects: dict | None = None):
         super().__init__()
         if degree < 0 or resolution < 2:
             raise ConfigError(f"model.light_field needs degree >= 0 and resolution >= 2, got "
                               f"{degree} and {resolution}.")
+        if (effects or {}).get("phase") == "isotropic":
+            degree = 0
         self.degree = degree
         k = 3 * num_coefficients(degree)
         self.coefficients = nn.Parameter(torch.zeros(resolution, resolution, resolution, k))
@@ -45,6 +52,11 @@ class SHGridLightField(nn.Module):
     @property
     def resolution(self) -> int:
         return self.coefficients.shape[0]
+
+    def cache_points(self) -> torch.Tensor:
+        """The cell centres (R^3, 3), ``[z, y, x]`` order: where the uncollided light's SH
+        coefficients are stored (:meth:`set_uncollided`)."""
+        return cell_centres(self.resolution, self.bbox).reshape(-1, 3)
 
     def _lookup(self, grid: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         c = sample_grid(grid, x, self.bbox)

@@ -6,8 +6,12 @@ exp(a)``, ``sigma_s = rho exp(s)``), ``g`` one shared value (``phase=hg``) or ``
 tanh(h)`` per voxel (``varying_hg``), as in :class:`~nrt.modules.medium.NeuralMedium`,
 whose heads this class shares. ``rho`` is the frozen EA density baked once onto ``R``^3
 cells (:meth:`set_density`); the modulation (exponents and logits) lives on a coarser
-grid that doubles during training
-(:mod:`nrt.modules.coarse_to_fine`, as the path-tracing baseline does).
+grid that doubles during training (``resolutions`` at the run's fractions ``upsample_at``,
+:meth:`VoxelMedium.follow_schedule`; :mod:`nrt.modules.coarse_to_fine`, as the
+path-tracing baseline does).
+
+It is the split stage's medium (``conf/model/medium/voxel.yaml``; the protocol:
+:class:`~nrt.modules.protocols.VoxelisedMedium`).
 
 Transport queries the medium many times per step (shadow rays, marches), so the properties
 are composed once on the ``R``^3 cells (:meth:`voxels`, differentiable) and then read by a
@@ -17,9 +21,13 @@ interpolate linearly, as Mitsuba's grid volumes do.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from functools import partial
+
 import torch
 
-from nrt.modules.medium import MediumProperties, NeuralMedium
+from nrt.modules.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.medium import GridModulation, MediumProperties, NeuralMedium
 from nrt.physics.volume import cell_centres, resample_cells, sample_grid
 
 
@@ -58,13 +66,17 @@ class Voxels:
 
 
 class VoxelMedium(NeuralMedium):
-    """EA density (baked on ``density_resolution``^3 cells) times a grid modulation that
-    starts at ``resolution``^3 cells."""
+    """EA density (baked on ``density_resolution``^3 cells) times a grid modulation of
+    ``resolutions[k]``^3 cells from the run's fraction ``upsample_at[k - 1]`` on."""
 
-    def __init__(self, effects: dict, resolution: int = 8, density_resolution: int = 64,
+    def __init__(self, effects: dict, resolutions: Sequence[int] = (8,),
+                 upsample_at: Sequence[float] = (), density_resolution: int = 64,
                  init_albedo: float = 0.8, parametrization: str = "scattering"):
-        super().__init__(effects, None, modulation="grid", grid_resolution=resolution,
+        check_schedule(resolutions, upsample_at,
+                       "budget.rte.medium_resolutions / medium_upsample_at")
+        super().__init__(effects, None, partial(GridModulation, resolution=resolutions[0]),
                          init_albedo=init_albedo, parametrization=parametrization)
+        self.resolutions, self.upsample_at = tuple(resolutions), tuple(upsample_at)
         r = density_resolution
         self.register_buffer("density", torch.ones(r, r, r, 1))
 
@@ -72,6 +84,24 @@ class VoxelMedium(NeuralMedium):
     def resolution(self) -> int:
         """Cells per axis of the modulation grid now."""
         return self.modulation.values.shape[0]
+
+    def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer | None) -> bool:
+        """Resample the modulation to its scheduled resolution at ``progress`` in [0, 1],
+        restarting its ``optimizer`` state; True when the resolution changed."""
+        res = resolution_at(progress, self.resolutions, self.upsample_at)
+        if res == self.resolution:
+            return False
+        resample_parameter(self.modulation.values, optimizer, res)
+        return True
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        """A checkpoint holds the modulation at the resolution its run had reached: resize the
+        grid to it before the values are loaded (the module's own hook, before its
+        children's)."""
+        values = state_dict.get(prefix + "modulation.values")
+        if values is not None:
+            self.modulation.values.data = torch.zeros_like(values)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
     def set_density(self, density) -> None:

@@ -1,0 +1,61 @@
+"""Components a stage receives from Hydra: factories, their protocols, and how checkpoints
+record them.
+
+A stage-2 model config picks its light field and medium by config group
+(``model/light_field=<name>``, ``model/medium=<name>``). Each option is a file with a
+``_target_`` and ``_partial_: true``: Hydra hands the stage a :func:`functools.partial`, and
+the stage calls it with what only it knows (the scene's effects, the EA density field).
+The stage then checks the component against the protocol it needs
+(:mod:`nrt.modules.protocols`), so a representation that does not fit is refused naming
+the config group and the members it lacks.
+
+Checkpoints must hold no pickled code (``torch.load`` reads them with ``weights_only``), so
+a stage records each factory as its config (:func:`factory_config`, a plain dict with
+``_target_``), and :func:`as_factory` turns that config back into the factory when
+``load_from_checkpoint`` rebuilds the stage. Checkpoints written before these were
+components hold the factory's keywords alone (no ``_target_``); a stage reads them with a
+``legacy`` translation.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+from hydra.utils import instantiate
+
+from nrt.errors import ConfigError
+
+
+def factory_config(factory: functools.partial) -> dict:
+    """The Hydra config (``_target_``, ``_partial_: true``, keywords) that builds ``factory``;
+    keywords that are factories themselves become nested configs."""
+    keywords = {k: factory_config(v) if isinstance(v, functools.partial) else v
+                for k, v in factory.keywords.items()}
+    func = factory.func
+    return {"_target_": f"{func.__module__}.{func.__qualname__}", "_partial_": True,
+            **keywords}
+
+
+def as_factory(component, group: str,
+               legacy: Callable[[dict], dict] | None = None) -> functools.partial:
+    """A stage's ``component`` argument as a factory: a partial as Hydra made it, a config
+    dict with ``_target_`` (a checkpoint's record) instantiated, or a dict of keywords from
+    an older checkpoint translated by ``legacy`` into such a config. ``group`` names the
+    config group in errors (``light_field``)."""
+    if isinstance(component, dict):
+        config = component if "_target_" in component or legacy is None else legacy(component)
+        component = instantiate(config, _convert_="all")
+    if isinstance(component, functools.partial):
+        return component
+    raise ConfigError(
+        f"model.{group} is a built {type(component).__name__}, but the stage builds it itself "
+        f"from the scene: give its config (conf/model/{group}/<name>.yaml) `_partial_: true` "
+        "beside its `_target_`.")
+
+
+
+def legacy_config(target: str) -> Callable[[dict], dict]:
+    """The ``legacy`` translation of :func:`as_factory` for a component whose keywords did
+    not change: ``_target_`` and ``_partial_`` added."""
+    return lambda keywords: {"_target_": target, "_partial_": True, **keywords}

@@ -1,0 +1,129 @@
+"""What the stage-2 formulations need of the light field and the medium that Hydra builds
+for them (``model/light_field=<name>``, ``model/medium=<name>``; see
+:mod:`nrt.modules.components`). Each protocol lists the members a stage, its objectives and
+its renderers use; a stage builds its components through :func:`build`, which checks them.
+
+Common to every light field: the buffers ``bbox`` (2, 3), the medium box, and
+``radiance_scale`` (), the training environment's mean radiance, both registered by the
+field (``register_buffer``) and filled by the stage in ``setup``. Directions are directions
+of travel (DESIGN.md section 2); radiance is linear RGB, (..., 3).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Protocol
+
+import torch
+
+from nrt.errors import ConfigError
+
+
+class ScatteredLightField(Protocol):
+    """The light field of the split stage (``stage=rte``): the light scattered at least once,
+    ``L_s(x, w)``, and the SH in-scattering of it and of the uncollided light. Built as
+    ``factory(effects=scene.effects)``; its trainable parameters are all of
+    ``parameters()``."""
+
+    bbox: torch.Tensor
+    radiance_scale: torch.Tensor
+    degree: int
+    """SH degree of the uncollided light's projection (:meth:`set_uncollided`)."""
+
+    def __call__(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """``L_s(x, w)`` (..., 3) at points (..., 3) along travel directions (..., 3)."""
+
+    def inscatter(self, x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
+                  with_uncollided: bool = False, trainable: bool = True) -> torch.Tensor:
+        """``int f(w' . w) L(x, w') dw'`` (..., 3) for HG of ``g`` (...,) or isotropic (None):
+        of ``L_s``, plus the cached uncollided light with ``with_uncollided``; no gradient to
+        the field's parameters with ``trainable=False``."""
+
+    def cache_points(self) -> torch.Tensor:
+        """Points (N, 3) at which the stage projects the uncollided light for the cache."""
+
+    def set_uncollided(self, coefficients: torch.Tensor, blend: float = 1.0) -> None:
+        """Store the uncollided light's SH coefficients (N, 3, (degree + 1)^2) at
+        :meth:`cache_points`, averaged with the cache by weight ``blend``."""
+
+
+class RadianceField(Protocol):
+    """The light field of the paper's formulation (``experiment=rte_paper``): the full
+    radiance ``L(x, w)`` and its directional derivative. Built as ``factory()``."""
+
+    bbox: torch.Tensor
+    radiance_scale: torch.Tensor
+
+    def __call__(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """``L(x, w)`` (..., 3)."""
+
+    def with_derivative(self, x: torch.Tensor, w: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``L(x, w)`` and ``(w . grad_x) L(x, w)``, both (..., 3)."""
+
+
+class VoxelisedMedium(Protocol):
+    """The learned medium of the split stage: properties composed on cells once per step,
+    a density baked from stage 1, a grid that may change resolution during the run. Built as
+    ``factory(effects)``; a :class:`~nrt.modules.medium.Medium` (``grids``, ``bbox``)."""
+
+    bbox: torch.Tensor
+
+    def voxels(self):
+        """The properties on cells (:class:`~nrt.modules.voxel_medium.Voxels`),
+        differentiable in the parameters."""
+
+    def set_density(self, density) -> None:
+        """Bake ``density(points (N, 3)) -> (N,)``, the EA field's, into the medium."""
+
+    def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
+        """Adapt to the run's ``progress`` in [0, 1] (coarse to fine); True if it changed."""
+
+    def grids(self, resolution: int) -> dict[str, torch.Tensor]:
+        """Properties on ``resolution``^3 cells in the ground truth's layout."""
+
+
+class ModulatedMedium(Protocol):
+    """The learned medium of the paper's formulation: a
+    :class:`~nrt.modules.medium.NeuralMedium`-like field modulating the EA density field.
+    Built as ``factory(effects, density_field)`` (``density_field`` None with ``init=none``)."""
+
+    bbox: torch.Tensor
+    density_field: torch.nn.Module | None
+
+    def __call__(self, x: torch.Tensor):
+        """:class:`~nrt.modules.medium.MediumProperties` at points (..., 3)."""
+
+    def grids(self, resolution: int) -> dict[str, torch.Tensor]:
+        """Properties on ``resolution``^3 cells in the ground truth's layout."""
+
+
+def members(protocol: type) -> tuple[str, ...]:
+    """The attributes and methods a protocol class declares (``__call__`` included)."""
+    names = list(getattr(protocol, "__annotations__", {}))
+    names += [n for n, v in vars(protocol).items()
+              if callable(v) and (not n.startswith("_") or n == "__call__")]
+    return tuple(dict.fromkeys(names))
+
+
+def build(factory: Callable, protocol: type, group: str, needs: str, *args, **kwargs):
+    """``factory(*args, **kwargs)``, refused with a :class:`~nrt.errors.ConfigError` naming
+    ``model/<group>`` (plus ``needs``: which options fit) when the factory does not take
+    these arguments or what it builds lacks a member of ``protocol``."""
+    where = f"The protocol: {protocol.__name__} in nrt/modules/protocols.py."
+    try:
+        inspect.signature(factory).bind(*args, **kwargs)
+    except (TypeError, ValueError) as exc:  # ValueError: a partial's own keywords misfit
+        raise ConfigError(f"model/{group}: {_name(factory)} cannot be built as this stage "
+                          f"builds its {group} ({exc}). {needs}. {where}") from None
+    component = factory(*args, **kwargs)
+    missing = [m for m in members(protocol) if not hasattr(component, m)]
+    if missing:
+        raise ConfigError(f"model/{group}: {type(component).__name__} lacks {missing}. {needs}. "
+                          f"{where}")
+    return component
+
+
+def _name(factory: Callable) -> str:
+    return getattr(getattr(factory, "func", factory), "__name__", repr(factory))

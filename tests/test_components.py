@@ -1,0 +1,146 @@
+"""Stage 2's light field and medium are components chosen by config group
+(``model/light_field=<name>``, ``model/medium=<name>``; :mod:`nrt.modules.components`):
+every such config builds with the formulation it belongs to and is refused with a
+``ConfigError`` naming its group by the other; the default compositions build the very
+modules they built before the groups existed; checkpoints written before load."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+import lightning
+import pytest
+import torch
+from conftest import compose_config
+from hydra.errors import InstantiationException
+from omegaconf import OmegaConf
+
+from nrt.cli.common import CONFIG_DIR
+from nrt.errors import ConfigError
+from nrt.modules.rte import RTEModule
+from nrt.modules.rte_split import SplitRTEModule
+
+FORMULATIONS = {"split": (), "paper": ("experiment=rte_paper",)}
+"""Stage 2's formulations: the default (split) stage and the paper's."""
+
+
+def build(*overrides: str):
+    """The model of ``preset=tiny init=none`` and ``overrides``, as nrt-train builds it; a
+    component's own ``ConfigError`` unwrapped from Hydra's exception (as the CLI does)."""
+    cfg = compose_config("train", ["preset=tiny", "init=none", *overrides])
+    try:
+        return cfg, hydra.utils.instantiate(cfg.model, _convert_="all")
+    except InstantiationException as exc:
+        raise exc.__cause__ from None
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONFIG_DIR / "model" / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize(("group", "attribute", "stages"), [
+    ("light_field", "light", ("rte", "forward")),
+    ("medium", "medium", ("rte",)),  # forward mode builds no medium: the truth is given
+])
+def test_every_light_field_and_medium_config_builds_with_its_formulation(group, attribute,
+                                                                         stages):
+    """Each file of ``conf/model/<group>/`` composed with both formulations and the stages
+    that build it: where it fits, the stage holds an object of the config's ``_target_``;
+    where it does not, the refusal is a ``ConfigError`` naming ``model/<group>``; and every
+    file fits at least one formulation (a new representation is one module and one such
+    file, and this test covers it without changes)."""
+    names = options(group)
+    assert {"light_field": {"sh_grid", "siren"},
+            "medium": {"voxel", "siren", "grid"}}[group] <= set(names)
+    for name in names:
+        fits = set()
+        for formulation, extra in FORMULATIONS.items():
+            for stage in stages:
+                try:
+                    cfg, model = build(f"stage={stage}", *extra, f"model/{group}={name}")
+                except ConfigError as exc:
+                    assert f"model/{group}" in str(exc), str(exc)
+                    continue
+                built = getattr(model, attribute)
+                target = OmegaConf.select(cfg, f"model.{group}._target_")
+                assert f"{type(built).__module__}.{type(built).__qualname__}" == target
+                fits.add(formulation)
+        assert fits, f"conf/model/{group}/{name}.yaml builds with no formulation"
+
+
+SPLIT_STATE = {
+    "light.coefficients": (12, 12, 12, 27), "light.uncollided": (12, 12, 12, 27),
+    "light.bbox": (2, 3), "light.radiance_scale": (), "medium.g_shared": (),
+    "medium.bbox": (2, 3), "medium.offsets": (6,), "medium.density": (16, 16, 16, 1),
+    "medium.modulation.values": (4, 4, 4, 6), "medium.modulation.unit_box": (2, 3)}
+PAPER_STATE = {
+    "light.bbox": (2, 3), "light.radiance_scale": (),
+    "light.net.linears.0.weight": (64, 6), "light.net.linears.0.bias": (64,),
+    "light.net.linears.1.weight": (64, 64), "light.net.linears.1.bias": (64,),
+    "light.net.linears.2.weight": (64, 64), "light.net.linears.2.bias": (64,),
+    "light.net.out.weight": (3, 64), "light.net.out.bias": (3,), "medium.g_shared": (),
+    "medium.bbox": (2, 3), "medium.offsets": (6,),
+    "medium.modulation.linears.0.weight": (32, 3), "medium.modulation.linears.0.bias": (32,),
+    "medium.modulation.linears.1.weight": (32, 32), "medium.modulation.linears.1.bias": (32,),
+    "medium.modulation.out.weight": (6, 32), "medium.modulation.out.bias": (6,)}
+PAPER_PARAMETER_SUM = 155.56965890563424
+"""Sum of the paper model's parameters built after ``torch.manual_seed(0)`` (``preset=tiny
+init=none``), measured at commit b04eadf, before the light field and medium were config
+groups: the same random draws in the same order give the same sum."""
+
+
+@pytest.mark.parametrize(("formulation", "state"), [("split", SPLIT_STATE),
+                                                     ("paper", PAPER_STATE)])
+def test_default_compositions_build_the_modules_of_before(formulation, state):
+    """State-dict names and shapes (checkpoints of before keep loading), parameters in the
+    optimizer's order, and for the paper's SIRENs the initial values (the same draws)."""
+    torch.manual_seed(0)
+    _, model = build("stage=rte", *FORMULATIONS[formulation])
+    assert {k: tuple(v.shape) for k, v in model.state_dict().items()} == state
+    params = [name for name, _ in model.named_parameters()]
+    assert params == [k for k in state if k in params]
+    if formulation == "paper":
+        total = sum(float(p.detach().double().sum()) for p in model.parameters())
+        assert total == pytest.approx(PAPER_PARAMETER_SUM, rel=1e-9)
+
+
+LEGACY = {  # the light_field and medium hyperparameters of checkpoints written before
+    SplitRTEModule: ({"degree": 2, "resolution": 12},
+                     {"resolutions": [4, 8, 16], "upsample_at": [0.4, 0.6],
+                      "density_resolution": 16, "init_albedo": 0.8,
+                      "parametrization": "extinction"}),
+    RTEModule: ({"hidden": 64, "layers": 3, "omega_0": 10.0, "omega_hidden": 30.0},
+                {"modulation": "siren", "grid_resolution": 32, "init_albedo": 0.8,
+                 "siren": {"hidden": 32, "layers": 2, "omega_0": 30.0, "omega_hidden": 30.0}}),
+}
+
+
+@pytest.mark.parametrize("cls", list(LEGACY), ids=lambda c: c.__name__)
+def test_checkpoints_load_with_old_and_new_hyperparameters(tmp_path: Path, cls):
+    """A checkpoint records the components as configs (plain data, no pickled code) that
+    ``load_from_checkpoint`` rebuilds; one written before (the components' keywords alone)
+    loads too, into the same state. The split stage's medium resizes its grid to the
+    resolution the checkpoint reached."""
+    torch.manual_seed(0)
+    _, model = build("stage=rte", *FORMULATIONS["split" if cls is SplitRTEModule else "paper"])
+    if cls is SplitRTEModule:
+        model.medium.follow_schedule(0.5, None)  # 4 -> 8 cells, as at 40% of a run
+        assert model.medium.resolution == 8
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_()
+    new = dict(model.hparams)
+    assert new["light_field"]["_target_"] and new["medium"]["_partial_"] is True
+    light, medium = LEGACY[cls]
+    for name, hparams in (("new", new), ("old", {**new, "light_field": light, "medium": medium})):
+        path = tmp_path / f"{name}.ckpt"
+        torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
+                    "pytorch-lightning_version": lightning.__version__}, path)
+        loaded = cls.load_from_checkpoint(path, map_location="cpu")
+        for group in ("light_field", "medium"):
+            recorded = dict(loaded.hparams)[group]
+            assert recorded["_target_"] == new[group]["_target_"]
+            assert name == "old" or recorded == new[group]
+        for key, value in model.state_dict().items():
+            torch.testing.assert_close(loaded.state_dict()[key], value, msg=key)
