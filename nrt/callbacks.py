@@ -110,7 +110,10 @@ class HeldOutImageMetrics(L.Callback):
 
     A stage's ``validation_step`` returns ``{"image": pred, "reference": ref}``, both
     (H, W, 3) linear radiance; this logs ``val/psnr``, ``val/ssim`` (and ``val/lpips``),
-    averaged over the views, next to ``time/wall_s``.
+    averaged over the views, next to ``time/wall_s``. A view of a family member (the output
+    holds ``member`` k) is also logged as ``val/<metric>_member<k>``, averaged over that
+    member's views; with the same number of views per member, ``val/<metric>`` is then the
+    mean over members.
     """
 
     def __init__(self, lpips: bool = False, lpips_net: str = "alex"):
@@ -134,10 +137,14 @@ class HeldOutImageMetrics(L.Callback):
         from nrt.metrics import psnr, ssim
 
         pred, ref = outputs["image"].detach(), outputs["reference"].detach()
-        pl_module.log("val/psnr", psnr(pred, ref), batch_size=1)
-        pl_module.log("val/ssim", ssim(pred, ref), batch_size=1)
+        scores = {"psnr": psnr(pred, ref), "ssim": ssim(pred, ref)}
         if self._lpips is not None:
-            pl_module.log("val/lpips", self._lpips(pred.cpu(), ref.cpu()), batch_size=1)
+            scores["lpips"] = self._lpips(pred.cpu(), ref.cpu())
+        member = outputs.get("member")
+        for name, value in scores.items():
+            pl_module.log(f"val/{name}", value, batch_size=1)
+            if member is not None:
+                pl_module.log(f"val/{name}_member{member}", value, batch_size=1)
 
 
 class PropertyMetrics(L.Callback):

@@ -11,6 +11,7 @@ from nrt.modules.stage import Stage
 
 STAGES = {  # a medium (property grids)? g scored (the default scene's phase is hg)?
     ("ea",): (False, True),
+    ("ea", "mode=generative", "scene=family"): (False, True),
     ("rte", "init=none"): (True, True),
     ("rte", "init=none", "experiment=rte_paper"): (True, True),
     ("forward",): (False, True),

@@ -69,3 +69,53 @@ def check_budget(cfg: DictConfig) -> None:
     if cfg.budget_s is not None and (not _is_number(cfg.budget_s) or cfg.budget_s <= 0):
         raise ConfigError(f"budget_s={cfg.budget_s}: must be a positive number of seconds of "
                        "training (or null for no time limit).")
+
+
+LATENT_COUNTS = {"dim": "d_z, the size of a latent code",
+                 "modulation_hidden": "the width of the modulation MLP M(z)"}
+"""Counts of ``mode.latent`` (each at least 1) and what they count."""
+
+
+def check_mode(cfg: DictConfig) -> None:
+    """Refuse a mode that does not fit the scene or stage, and latent settings no run can
+    use, before anything is built or loaded: ``mode=generative`` trains stage 1 on a scene
+    family (``scene.family``), a family trains only in that mode, and ``mode.latent`` holds
+    counts >= 1, a non-negative ``init_std`` and ``prior_weight`` and a positive ``lr``."""
+    mode = OmegaConf.select(cfg, "mode.name", default="single")
+    family = OmegaConf.select(cfg, "scene.family") is not None
+    if mode not in ("single", "generative"):
+        raise ConfigError(f"mode.name={mode}: must be single or generative (mode=single|"
+                          "generative picks conf/mode/<name>.yaml).")
+    if mode == "single" and family:
+        raise ConfigError(f"scene={cfg.scene.name} is a family of scenes (scene.family), "
+                          "which nrt-train trains only as a whole with mode=generative "
+                          f"(nrt-train stage=ea mode=generative scene={cfg.scene.name}); to "
+                          "train one member alone, pass scene.path=<member folder> "
+                          "scene.name=<member name> with a single scene config.")
+    if mode == "single":
+        return
+    if not family:
+        raise ConfigError(f"mode=generative learns a distribution over a family of scenes, "
+                          f"but scene={cfg.scene.name} is one scene (it has no scene.family). "
+                          "Add scene=family (README \"Scene families\"), or drop "
+                          "mode=generative to train this scene alone.")
+    if cfg.stage.name != "ea":
+        raise ConfigError(f"mode=generative is built for stage=ea only; stage="
+                          f"{cfg.stage.name} in generative mode is not built yet. Run "
+                          "nrt-train stage=ea mode=generative scene=family.")
+    environments = OmegaConf.select(cfg, "stage.environments")
+    if any(isinstance(e, int) and e != 0 for e in environments or []):
+        raise ConfigError(f"stage.environments={list(environments)}: a family trains on its "
+                          "shared training environment only (position 0; position 1 is the "
+                          "held-back sky for novel illumination). Set stage.environments=[0].")
+    latent = OmegaConf.to_container(cfg.mode.latent, resolve=True)
+    for name, what in LATENT_COUNTS.items():
+        if not _is_count(latent.get(name), 1):
+            raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be a whole number "
+                              f">= 1 ({what}).")
+    for name in ("init_std", "prior_weight"):
+        if not _is_number(latent.get(name)) or latent[name] < 0:
+            raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be a number >= 0.")
+    if not _is_number(latent.get("lr")) or latent["lr"] <= 0:
+        raise ConfigError(f"mode.latent.lr={latent.get('lr')}: a learning rate must be a "
+                          "positive number.")

@@ -4,9 +4,10 @@ Short and linear, in the lightning-hydra-template manner: compose, seed, checks,
 callbacks (so that what the config alone decides is refused before any rendering), data,
 loggers, trainer, fit (resuming when asked), export. The EA checkpoint a stage starts
 from is resolved to an absolute path and recorded in ``run.json`` and in the saved
-``.hydra/config.yaml`` (``init.ea_ckpt``). Lightning, torch and
-Mitsuba are imported inside the task, so ``--cfg``, ``--help`` and config errors answer
-at once.
+``.hydra/config.yaml`` (``init.ea_ckpt``); ``mode=generative`` trains on every member of a
+scene family (``scene=family``) and records the family folder and its members. Lightning,
+torch and Mitsuba are imported inside the task, so ``--cfg``, ``--help`` and config errors
+answer at once.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from nrt.cli.checks import check_budget
+from nrt.cli.checks import check_budget, check_mode
 from nrt.cli.common import run_app
 from nrt.errors import NrtError
 from nrt.run_dirs import (
@@ -90,6 +91,7 @@ def save_config(cfg: DictConfig, run_dir: Path) -> None:
 def train_task(cfg: DictConfig) -> dict:
     import lightning as L
 
+    from nrt.data.family import ensure_family
     from nrt.data.render import ensure_dataset
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -98,20 +100,21 @@ def train_task(cfg: DictConfig) -> dict:
     # counts no run can use, a missing EA run or resume checkpoint, and the checks of the
     # model and callbacks themselves (e.g. stage 2 on truncated scattering orders).
     check_budget(cfg)
+    check_mode(cfg)
     ckpt = resume_checkpoint(cfg, run_dir)
     ea_ckpt = resolve_ea_checkpoint(cfg, read_run_info(run_dir).get("ea_ckpt") if ckpt else None)
     if ea_ckpt is not None:
         save_config(cfg, run_dir)
     model = hydra.utils.instantiate(cfg.model, _convert_="all")
     callbacks = [hydra.utils.instantiate(c) for c in cfg.callbacks.values()]
-    dataset_dir = ensure_dataset(OmegaConf.to_container(cfg.scene, resolve=True),
-                                 cfg.paths.data_dir, variant=cfg.render.variant,
-                                 progress=cfg.render.progress)
+    scene = OmegaConf.to_container(cfg.scene, resolve=True)
+    ensure = ensure_family if scene.get("family") is not None else ensure_dataset
+    dataset_dir = ensure(scene, cfg.paths.data_dir, variant=cfg.render.variant,
+                         progress=cfg.render.progress)  # a family: the family folder
     datamodule = hydra.utils.instantiate(cfg.data, dataset_dir=str(dataset_dir))
     datamodule.setup()
-    write_run_info(run_dir, stage=cfg.stage.name, scene=cfg.scene.name,
-                   dataset_dir=str(Path(dataset_dir).resolve()),
-                   environments=datamodule.train_data.environments_used(),
+    write_run_info(run_dir, stage=cfg.stage.name, scene=cfg.scene.name, mode=cfg.mode.name,
+                   **datamodule.run_info(),
                    **({"ea_ckpt": ea_ckpt} if ea_ckpt is not None else {}))
     loggers = [hydra.utils.instantiate(lg) for lg in cfg.logger.values()]
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers)

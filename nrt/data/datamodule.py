@@ -1,13 +1,19 @@
-"""Lightning DataModule of camera rays: random jittered batches for training, whole
+"""Lightning DataModules of camera rays: random jittered batches for training, whole
 held-out images for validation. Rays are made on the fly from the dataset tensors
 (no per-epoch copies); every batch carries the known background ``E(v)`` of its rays.
 
 A batch is a dict of ``origins``, ``dirs`` (unit view directions v), ``rgb`` (pixel
 radiance) and ``background`` (``E(v)`` of the ray's environment), each (B, 3);
-validation batches add ``view`` (index) and ``shape`` (H, W).
+validation batches add ``view`` (index) and ``shape`` (H, W). :class:`RayDataModule`
+reads one dataset; :class:`FamilyRayDataModule` the members of a scene family
+(``mode=generative``), whose batches add ``member`` (B,) (training: each ray's member;
+validation: the view's member, and ``view`` counts within it).
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
 
 import lightning as L
 import torch
@@ -15,6 +21,7 @@ from torch.utils.data import DataLoader, IterableDataset
 
 from nrt.cameras import camera_rays
 from nrt.data.dataset import SceneDataset, load_dataset
+from nrt.data.family import Family, load_family
 from nrt.errors import DatasetError
 from nrt.physics.envmap import EnvironmentMap
 
@@ -32,10 +39,13 @@ def environment_radiance(data: SceneDataset, env_index: torch.Tensor, dirs: torc
 
 class RandomRays(IterableDataset):
     """``steps`` batches of ``batch_size`` rays drawn uniformly over all pixels of all
-    training images, each jittered uniformly inside its pixel (box-filter pixels)."""
+    training images, each jittered uniformly inside its pixel (box-filter pixels).
+    ``members`` (N,): the family member of each image; batches then carry ``member``."""
 
-    def __init__(self, data: SceneDataset, batch_size: int, steps: int, seed: int):
+    def __init__(self, data: SceneDataset, batch_size: int, steps: int, seed: int,
+                 members: torch.Tensor | None = None):
         self.data, self.batch_size, self.steps, self.seed = data, batch_size, steps, seed
+        self.members = members
         self.epoch = 0
 
     def __iter__(self):
@@ -50,31 +60,51 @@ class RandomRays(IterableDataset):
             o, d = camera_rays(self.data.c2w[img], self.data.intrinsics,
                                col + jitter[:, 0], row + jitter[:, 1])
             env = self.data.env_index[img]
-            yield {"origins": o, "dirs": d, "rgb": self.data.images[img, row, col],
-                   "background": environment_radiance(self.data, env, d)}
+            batch = {"origins": o, "dirs": d, "rgb": self.data.images[img, row, col],
+                     "background": environment_radiance(self.data, env, d)}
+            if self.members is not None:
+                batch["member"] = self.members[img]
+            yield batch
+
+
+def _spread(n: int, max_views: int | None) -> list[int]:
+    """Up to ``max_views`` of ``n`` positions, evenly spread (all when ``max_views`` is
+    None or 0)."""
+    k = n if not max_views else min(max_views, n)
+    return torch.linspace(0, n - 1, k).round().long().unique().tolist()
 
 
 class HeldOutImages(IterableDataset):
-    """Whole held-out images, one batch per image, rays through pixel centres."""
+    """Whole held-out images, one batch per image, rays through pixel centres. With
+    ``members`` (N,), the family member of each image, ``max_views`` applies per member and
+    batches carry ``member`` and the view's position within it."""
 
-    def __init__(self, data: SceneDataset, max_views: int | None):
+    def __init__(self, data: SceneDataset, max_views: int | None,
+                 members: torch.Tensor | None = None):
         self.data = data
-        n = len(data)
-        k = n if not max_views else min(max_views, n)
-        self.views = torch.linspace(0, n - 1, k).round().long().unique().tolist()
+        if members is None:  # (member, view, image)
+            self.views = [(None, i, i) for i in _spread(len(data), max_views)]
+        else:
+            frames = [torch.nonzero(members == k).flatten().tolist()
+                      for k in range(int(members.max()) + 1)]
+            self.views = [(k, j, own[j]) for k, own in enumerate(frames)
+                          for j in _spread(len(own), max_views)]
 
     def __len__(self) -> int:
         return len(self.views)
 
     def __iter__(self):
         h, w = self.data.images.shape[1:3]
-        for i in self.views:
+        for member, view, i in self.views:
             o, d, rgb = self.data.rays(i)
             env = self.data.env_index[i].expand(h * w)
             d = d.reshape(-1, 3)
-            yield {"origins": o.reshape(-1, 3), "dirs": d, "rgb": rgb.reshape(-1, 3),
-                   "background": environment_radiance(self.data, env, d),
-                   "view": i, "shape": (h, w)}
+            batch = {"origins": o.reshape(-1, 3), "dirs": d, "rgb": rgb.reshape(-1, 3),
+                     "background": environment_radiance(self.data, env, d),
+                     "view": view, "shape": (h, w)}
+            if member is not None:
+                batch["member"] = member
+            yield batch
 
 
 class RayDataModule(L.LightningDataModule):
@@ -90,6 +120,8 @@ class RayDataModule(L.LightningDataModule):
         self.val_views, self.seed = val_views, seed
         self.train_data: SceneDataset | None = None
         self.val_data: SceneDataset | None = None
+        self.train_members: torch.Tensor | None = None  # a family's member of each frame
+        self.val_members: torch.Tensor | None = None
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_data is None:
@@ -121,9 +153,112 @@ class RayDataModule(L.LightningDataModule):
         self.setup()
         return self.train_data.ground_truth
 
+    def run_info(self) -> dict:
+        """What ``run.json`` records about the data: the dataset folder and the
+        environments trained on."""
+        self.setup()
+        return {"dataset_dir": str(Path(self.dataset_dir).resolve()),
+                "environments": self.train_data.environments_used()}
+
     def train_dataloader(self) -> DataLoader:
         return DataLoader(RandomRays(self.train_data, self.batch_size, self.steps_per_epoch,
-                                     self.seed), batch_size=None)
+                                     self.seed, self.train_members), batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
-        return DataLoader(HeldOutImages(self.val_data, self.val_views), batch_size=None)
+        return DataLoader(HeldOutImages(self.val_data, self.val_views, self.val_members),
+                          batch_size=None)
+
+
+def merge_members(datasets: list[SceneDataset], root: Path) -> tuple[SceneDataset, torch.Tensor]:
+    """One dataset of every frame of ``datasets`` (one split of each family member, in
+    member order; they must share image size, intrinsics and medium box) and the member
+    of each frame (N,). The members' environments follow one another in the merged
+    ``envmaps`` (named ``<member folder>:<name>``); the ground truth stays with the
+    members."""
+    first = datasets[0]
+    for data in datasets[1:]:
+        same = (data.images.shape[1:] == first.images.shape[1:]
+                and data.intrinsics == first.intrinsics and torch.equal(data.bbox, first.bbox))
+        if not same:
+            raise DatasetError(f"Family '{root}': member '{data.root}' has other image sizes, "
+                               f"intrinsics or medium box than '{first.root}'; the members of "
+                               "a family share one camera rig. Render the family again "
+                               "(`nrt-data scene=family`).")
+    offsets = torch.tensor([0] + [len(d.env_names) for d in datasets[:-1]]).cumsum(0)
+    merged = replace(
+        first, root=root,
+        images=torch.cat([d.images for d in datasets]),
+        c2w=torch.cat([d.c2w for d in datasets]),
+        env_index=torch.cat([d.env_index + int(o) for d, o in zip(datasets, offsets,
+                                                                   strict=True)]),
+        env_names=[f"{d.root.name}:{name}" for d in datasets for name in d.env_names],
+        envmaps=[m for d in datasets for m in d.envmaps], ground_truth=None, spec=None)
+    members = torch.cat([torch.full((len(d),), k, dtype=torch.long)
+                         for k, d in enumerate(datasets)])
+    return merged, members
+
+
+class FamilyRayDataModule(RayDataModule):
+    """The rays of every member of a scene family (``mode=generative``), under the family's
+    shared training environment only: the held-back one is never trained on, nor
+    validated on (the EA colour bakes in its lighting).
+
+    Training batches are drawn uniformly over all members' training pixels, so each mixes
+    members, and carry each ray's ``member``; validation renders ``val_views`` held-out
+    views of each member. ``dataset_dir`` is the family folder (``family.json``);
+    ``environments`` (names or positions) may name only the training environment
+    (``stage.environments: [0]`` in ``conf/mode/generative.yaml``; null: the same); the
+    other arguments are :class:`RayDataModule`'s."""
+
+    def __init__(self, dataset_dir: str, **kwargs):
+        super().__init__(dataset_dir, **kwargs)
+        self.family: Family | None = None
+        self.member_ground_truths: list[dict[str, torch.Tensor] | None] = []
+
+    def _training_environment(self, data: SceneDataset) -> str:
+        train = self.family.train_environment
+        for item in self.environments or []:
+            name = data.env_names[item] if isinstance(item, int) and \
+                0 <= item < len(data.env_names) else str(item)
+            if name != train:
+                raise DatasetError(
+                    f"Family '{self.dataset_dir}': data.environments names '{item}', but a "
+                    f"family trains on its shared training environment '{train}' only (the "
+                    f"held-back '{self.family.heldout_environment}' is for novel "
+                    "illumination). Set stage.environments=[0] or null.")
+        return train
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.train_data is not None:
+            return
+        self.family = load_family(self.dataset_dir)
+        splits = {}
+        for split in ("train", "test"):
+            members = [load_dataset(folder, split) for folder in self.family.folders()]
+            env = self._training_environment(members[0])
+            members = [data.select_environments([env]) for data in members]
+            splits[split] = merge_members(members, self.family.root)
+            if split == "train":
+                self.member_ground_truths = [data.ground_truth for data in members]
+        self.train_data, self.train_members = splits["train"]
+        self.val_data, self.val_members = splits["test"]
+
+    @property
+    def num_members(self) -> int:
+        """K, the family's size."""
+        self.setup()
+        return len(self.family)
+
+    @property
+    def ground_truth(self) -> None:
+        """None: a family has one ground truth per member (:attr:`member_ground_truths`)."""
+        return None
+
+    def run_info(self) -> dict:
+        """What ``run.json`` records about the data: the family folder, its members
+        (index, seed, name, dataset folder) and the environment trained on."""
+        self.setup()
+        return {"family_dir": str(self.family.root.resolve()),
+                "members": [{"index": m.index, "seed": m.seed, "name": m.name,
+                             "dataset_dir": str(m.folder)} for m in self.family.members],
+                "environments": [self.family.train_environment]}

@@ -177,8 +177,8 @@ def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "au
             f"Scene '{scene_cfg.get('name')}' is a family of scenes (scene.family), not one "
             "dataset. `nrt-data scene=<family>` renders its members and prints the family "
             "folder, whose family.json lists every member's dataset folder; use one member "
-            "with scene.path=<member folder> scene.name=<member name>. Training over a whole "
-            "family (the generative auto-decoder) is not built yet.")
+            "with scene.path=<member folder> scene.name=<member name>, or train the whole "
+            "family with `nrt-train stage=ea mode=generative scene=<family>`.")
     if scene_cfg.get("path"):
         folder = Path(str(scene_cfg["path"])).expanduser()
         if not folder.is_dir():

@@ -51,6 +51,11 @@ def open_run(path: str | Path) -> TrainedRun:
                        "outputs/<scene>/<stage>/<timestamp>-<pid> (or grids=<file.npz> with "
                        "scene=<name> to evaluate a property-grid file).")
     info = json.loads(info_file.read_text())
+    if "family_dir" in info:
+        raise NrtError(f"run='{path}' is a generative run over the scene family "
+                       f"'{info['family_dir']}' (mode=generative), which nrt-eval does not "
+                       "evaluate yet; its per-member density grids are in "
+                       "members/<name>/density_grid.npz and its codes in latents.npz.")
     cfg = OmegaConf.load(cfg_file)
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return TrainedRun(path, info["stage"], info["scene"], Path(info["dataset_dir"]),

@@ -23,6 +23,8 @@ from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.tonemap import log_tonemap, luminance
 from nrt.physics.volume import cell_centres, ray_box_intersect
 
+DENSITY_GRID_FILE = "density_grid.npz"
+
 PHOTOMETRIC_LOSSES = {
     "log_mse": lambda pred, ref: torch.mean((log_tonemap(pred) - log_tonemap(ref)) ** 2),
     "mse": lambda pred, ref: torch.mean((pred - ref) ** 2),
@@ -31,11 +33,13 @@ PHOTOMETRIC_LOSSES = {
 
 def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
                 background: torch.Tensor, n_samples: int, jitter: bool,
-                chunk: int | None = None) -> torch.Tensor:
-    """EA radiance ``L(o, -v)`` (R, 3) of view rays; rays missing the box see ``E(v)``."""
+                chunk: int | None = None, latent: torch.Tensor | None = None) -> torch.Tensor:
+    """EA radiance ``L(o, -v)`` (R, 3) of view rays; rays missing the box see ``E(v)``.
+    ``latent`` (R, d_z): each ray's code, for a conditioned field (``mode=generative``)."""
     if chunk and origins.shape[0] > chunk:
         return torch.cat([render_rays(field, origins[i:i + chunk], dirs[i:i + chunk],
-                                      background[i:i + chunk], n_samples, jitter)
+                                      background[i:i + chunk], n_samples, jitter,
+                                      latent=None if latent is None else latent[i:i + chunk])
                           for i in range(0, origins.shape[0], chunk)])
     t0, t1, hit = ray_box_intersect(origins, dirs, field.bbox)
     out = background.clone()
@@ -43,7 +47,8 @@ def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
         o, d = origins[hit], dirs[hit]
         t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
         pts = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
-        sigma, rgb = field(pts, d.unsqueeze(1).expand_as(pts))
+        z = None if latent is None else latent[hit].unsqueeze(1)  # one code per ray
+        sigma, rgb = field(pts, d.unsqueeze(1).expand_as(pts), z)
         out[hit], _ = alpha_composite(sigma, delta, rgb, background[hit])
     return out
 
@@ -79,60 +84,86 @@ class EAModule(Stage):
             [{"params": enc}, {"params": rest, "weight_decay": self.hparams.weight_decay}],
             lr=self.hparams.lr, eps=self.hparams.eps, betas=(0.9, 0.99))
 
+    def ray_latents(self, batch: dict) -> torch.Tensor | None:
+        """Each ray's latent code (R, d_z) for a conditioned field; None for one scene."""
+        return None
+
+    def render(self, batch: dict, jitter: bool, chunk: int | None = None) -> torch.Tensor:
+        """The EA radiance (R, 3) of a batch's rays (:func:`render_rays`)."""
+        return render_rays(self.field, batch["origins"], batch["dirs"], batch["background"],
+                           self.hparams.samples_per_ray, jitter=jitter, chunk=chunk,
+                           latent=self.ray_latents(batch))
+
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        pred = render_rays(self.field, batch["origins"], batch["dirs"], batch["background"],
-                           self.hparams.samples_per_ray, jitter=True)
-        loss = self.photometric(pred, batch["rgb"])
+        loss = self.photometric(self.render(batch, jitter=True), batch["rgb"])
         self.log("train/loss", loss, prog_bar=True)
         return loss
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
+        """Render one held-out view; the output carries ``member`` when the batch does."""
         h, w = batch["shape"]
-        pred = render_rays(self.field, batch["origins"], batch["dirs"], batch["background"],
-                           self.hparams.samples_per_ray, jitter=False,
-                           chunk=self.hparams.eval_chunk)
+        pred = self.render(batch, jitter=False, chunk=self.hparams.eval_chunk)
         ref = batch["rgb"]
-        view = int(batch["view"])
-        if view not in self._baseline_psnr:  # medium-free prediction: background only
-            self._baseline_psnr[view] = float(psnr(batch["background"], ref))
-        self.log("val/psnr_background_only", self._baseline_psnr[view], batch_size=1)
+        member = batch.get("member")
+        key = (member, int(batch["view"]))
+        if key not in self._baseline_psnr:  # medium-free prediction: background only
+            self._baseline_psnr[key] = float(psnr(batch["background"], ref))
+        self.log("val/psnr_background_only", self._baseline_psnr[key], batch_size=1)
         if batch_idx == 0:
             log_image(self, "val/render_vs_truth",
                       torch.cat((pred.reshape(h, w, 3), ref.reshape(h, w, 3)), 1))
-        return {"image": pred.reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
+        out = {"image": pred.reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
+        if member is not None:
+            out["member"] = int(member)
+        return out
 
     @torch.no_grad()
-    def density_grid(self, resolution: int) -> torch.Tensor:
-        """Learned density (R, R, R) at the box's cell centres, indexed [z, y, x]."""
+    def density_grid(self, resolution: int, latent: torch.Tensor | None = None
+                     ) -> torch.Tensor:
+        """Learned density (R, R, R) at the box's cell centres, indexed [z, y, x]; ``latent``
+        (d_z,) is the code of a conditioned field."""
         pts = cell_centres(resolution, self.field.bbox).reshape(-1, 3)
         chunk = self.hparams.eval_chunk * 8
-        dens = torch.cat([self.field.density(pts[i:i + chunk])
+        dens = torch.cat([self.field.density(pts[i:i + chunk], latent)
                           for i in range(0, len(pts), chunk)])
         return dens.reshape(resolution, resolution, resolution)
+
+    def score_density(self, gt: dict[str, torch.Tensor], latent: torch.Tensor | None = None
+                      ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """Agreement (``corr``, ``rel_err``) of the learned density with the luminance of the
+        true sigma_t on the ground truth's grid, and the middle z-slices learned | true
+        (H, 2W, 3) scaled by the true maximum, for TensorBoard."""
+        sigma_t = luminance(gt["sigma_a"] + gt["sigma_s"]).to(self.device)
+        learned = self.density_grid(sigma_t.shape[0], latent)
+        mid = sigma_t.shape[0] // 2
+        panel = torch.cat((learned[mid], sigma_t[mid]), 1) / sigma_t.max().clamp_min(1e-8)
+        return (density_agreement(learned, sigma_t),
+                panel.clamp(0, 1).unsqueeze(-1).expand(-1, -1, 3))
 
     def on_validation_epoch_end(self) -> None:
         gt = self.ground_truth()
         if gt is None:
             return
-        sigma_t = luminance(gt["sigma_a"] + gt["sigma_s"]).to(self.device)
-        learned = self.density_grid(sigma_t.shape[0])
-        agree = density_agreement(learned, sigma_t)
+        agree, panel = self.score_density(gt)
         self.log("val/density_corr", agree["corr"])
         self.log("val/density_rel_err", agree["rel_err"])
-        mid = sigma_t.shape[0] // 2
-        scale = sigma_t.max().clamp_min(1e-8)
-        panel = torch.cat((learned[mid], sigma_t[mid]), 1) / scale
-        log_image(self, "val/density_slice_vs_truth", panel.clamp(0, 1).unsqueeze(-1).expand(
-            -1, -1, 3))
+        log_image(self, "val/density_slice_vs_truth", panel)
+
+    def write_density_grid(self, path: Path, resolution: int,
+                           latent: torch.Tensor | None = None) -> str:
+        """Write ``density_grid.npz`` (``density`` [z, y, x] per unit length, ``bbox``) of
+        the field (under ``latent``) at ``resolution`` cells per axis to ``path``."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, density=self.density_grid(resolution, latent).cpu().numpy(),
+                            bbox=self.field.bbox.cpu().numpy())
+        return str(path)
 
     def export(self, run_dir: str | Path) -> dict[str, str]:
-        """Write ``density_grid.npz`` (``density`` [z, y, x] per unit length, ``bbox``) at
-        ``density_resolution`` (default: the ground truth's, else 64) into ``run_dir``."""
+        """Write ``density_grid.npz`` at ``density_resolution`` (default: the ground truth's,
+        else 64) into ``run_dir``."""
         res = self.grid_resolution(self.hparams.density_resolution, 64)
-        path = Path(run_dir) / "density_grid.npz"
-        np.savez_compressed(path, density=self.density_grid(res).cpu().numpy(),
-                            bbox=self.field.bbox.cpu().numpy())
-        return {"density_grid": str(path)}
+        return {"density_grid": self.write_density_grid(Path(run_dir) / DENSITY_GRID_FILE,
+                                                        res)}
 
 
 def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu") -> EAField:
@@ -143,6 +174,12 @@ def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu
                        "first (nrt-train stage=ea scene=<same scene>) or pass "
                        "init.ea_ckpt=<path/to/last.ckpt> (stage 2 also runs without a first "
                        "stage: init=none).")
+    saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+    if saved.get("hyper_parameters", {}).get("field", {}).get("latent_dim", 0):
+        raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a generative EA run over a scene family "
+                       "(mode=generative): its field needs a member's latent code, and stage 2 "
+                       "in generative mode is not built yet. Start stage 2 from a single-scene "
+                       "EA run (nrt-train stage=ea scene=<scene>).")
     module = EAModule.load_from_checkpoint(ckpt_path, map_location=map_location)
     return module.field
 

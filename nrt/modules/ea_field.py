@@ -3,6 +3,13 @@
 Stage 1 of nrt (the paper's EA NeRF): its colour is discarded and its density
 ``rho_EA(x)`` (per unit length, world units) seeds the medium of stage 2, which queries
 it through :meth:`EAField.density`. Points are world coordinates inside ``bbox``.
+
+A field built with ``latent_dim > 0`` is conditioned on a latent code z (the generative
+auto-decoder, ``mode=generative``): the hash-grid features are multiplied channel by channel
+by ``1 + M(z)``, ``M`` a small MLP (its output layer starts at zero, so every code starts
+from the same field). Such a field needs a code at every query; one without
+(``latent_dim = 0``, the default) refuses one and builds exactly the parameters it always
+had, in the same order, so single-scene runs draw the same random numbers.
 """
 
 from __future__ import annotations
@@ -38,7 +45,7 @@ class EAField(nn.Module):
 
     def __init__(self, hash_grid: dict | None = None, hidden: int = 64, layers: int = 1,
                  geo_features: int = 15, density_activation: str = "trunc_exp",
-                 density_bias: float = -1.0):
+                 density_bias: float = -1.0, latent_dim: int = 0, modulation_hidden: int = 32):
         super().__init__()
         if density_activation not in DENSITY_ACTIVATIONS:
             raise ConfigError(f"model.field.density_activation must be one of "
@@ -49,22 +56,37 @@ class EAField(nn.Module):
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
+        self.latent_dim = int(latent_dim)
+        self.modulation: nn.Sequential | None = None
+        if self.latent_dim > 0:  # built last: the unconditioned parameters draw as before
+            self.modulation = mlp(self.latent_dim, modulation_hidden, self.encoding.output_dim, 1)
+            nn.init.zeros_(self.modulation[-1].weight)
+            nn.init.zeros_(self.modulation[-1].bias)
 
     def _features(self, x: torch.Tensor, latent: torch.Tensor | None) -> torch.Tensor:
-        if latent is not None:
-            raise NotImplementedError("latent-conditioned EA fields arrive with the generative "
-                                      "variant (multiplicative modulation of the hash features)")
         unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0])
-        h = self.density_net(self.encoding(unit))
-        return h
+        features = self.encoding(unit)
+        if self.modulation is not None:
+            if latent is None or latent.shape[-1] != self.latent_dim:
+                raise ValueError(f"this EA field is conditioned on latent codes of dimension "
+                                 f"{self.latent_dim}: pass latent (..., {self.latent_dim}) "
+                                 "broadcastable against the points' leading dimensions.")
+            features = features * (1.0 + self.modulation(latent))
+        elif latent is not None:
+            raise ValueError("this EA field has no latent code (latent_dim=0); build it with "
+                             "latent_dim > 0 to condition it on one.")
+        return self.density_net(features)
 
     def density(self, x: torch.Tensor, latent: torch.Tensor | None = None) -> torch.Tensor:
-        """Density ``rho_EA`` (...,) at world points ``x`` (..., 3); stage 2 calls this."""
+        """Density ``rho_EA`` (...,) at world points ``x`` (..., 3); stage 2 calls this.
+        ``latent`` (..., d_z), broadcastable against ``x``'s leading dimensions, is required
+        exactly when the field is conditioned (``latent_dim > 0``)."""
         return self.activation(self._features(x, latent)[..., 0] + self.density_bias)
 
     def forward(self, x: torch.Tensor, d: torch.Tensor, latent: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Density (...,) and colour (..., 3) at points ``x`` seen along view directions ``d``."""
+        """Density (...,) and colour (..., 3) at points ``x`` seen along view directions ``d``
+        (``latent`` as in :meth:`density`)."""
         h = self._features(x, latent)
         sigma = self.activation(h[..., 0] + self.density_bias)
         rgb = nn.functional.softplus(self.color_net(torch.cat((h[..., 1:], sh_deg2(d)), -1)))
