@@ -1,5 +1,5 @@
 """Stage 2's light field and medium are components chosen by config group
-(``model/light_field=<name>``, ``model/medium=<name>``; :mod:`nrt.modules.components`):
+(``model/light_field=<name>``, ``model/medium=<name>``; :mod:`nrt.modules.stages.components`):
 every such config builds with the formulation it belongs to and is refused with a
 ``ConfigError`` naming its group by the other; the default compositions build the very
 modules they built before the groups existed; checkpoints written before load."""
@@ -18,8 +18,8 @@ from omegaconf import OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
 from nrt.errors import ConfigError
-from nrt.modules.rte import RTEModule
-from nrt.modules.rte_split import SplitRTEModule
+from nrt.modules.stages.rte import RTEModule
+from nrt.modules.stages.rte_split import SplitRTEModule
 
 FORMULATIONS = {"split": (), "paper": ("experiment=rte_paper",)}
 """Stage 2's formulations: the default (split) stage and the paper's."""

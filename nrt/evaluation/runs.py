@@ -21,7 +21,7 @@ from nrt.errors import NrtError
 from nrt.run_dirs import LAST_CKPT, RUN_FILE
 
 if TYPE_CHECKING:
-    from nrt.modules.stage import Stage
+    from nrt.modules.stages.stage import Stage
 
 log = logging.getLogger(__name__)
 

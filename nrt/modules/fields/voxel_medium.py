@@ -3,15 +3,15 @@
 ``sigma_t = rho exp(t)`` per channel (one when grey) and ``albedo = sigmoid(b)``
 (``parametrization=extinction``, stage 2's default; ``scattering``: ``sigma_a = rho
 exp(a)``, ``sigma_s = rho exp(s)``), ``g`` one shared value (``phase=hg``) or ``G_MAX
-tanh(h)`` per voxel (``varying_hg``), as in :class:`~nrt.modules.medium.NeuralMedium`,
+tanh(h)`` per voxel (``varying_hg``), as in :class:`~nrt.modules.fields.medium.NeuralMedium`,
 whose heads this class shares. ``rho`` is the frozen EA density baked once onto ``R``^3
 cells (:meth:`set_density`); the modulation (exponents and logits) lives on a coarser
 grid that doubles during training (``resolutions`` at the run's fractions ``upsample_at``,
-:meth:`VoxelMedium.follow_schedule`; :mod:`nrt.modules.coarse_to_fine`, as the
+:meth:`VoxelMedium.follow_schedule`; :mod:`nrt.modules.fields.coarse_to_fine`, as the
 path-tracing baseline does).
 
 It is the split stage's medium (``conf/model/medium/voxel.yaml``; the protocol:
-:class:`~nrt.modules.protocols.VoxelisedMedium`).
+:class:`~nrt.modules.fields.protocols.VoxelisedMedium`).
 
 Transport queries the medium many times per step (shadow rays, marches), so the properties
 are composed once on the ``R``^3 cells (:meth:`voxels`, differentiable) and then read by a
@@ -26,15 +26,15 @@ from functools import partial
 
 import torch
 
-from nrt.modules.coarse_to_fine import check_schedule, resample_parameter, resolution_at
-from nrt.modules.medium import GridModulation, MediumProperties, NeuralMedium
+from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
 from nrt.physics.volume import cell_centres, resample_cells, sample_grid
 
 
 class Voxels:
     """Properties composed on cells: ``stacked`` (R, R, R, C + 3 [+ 1]) holds sigma_t (C = 3,
     or 1 when grey), the RGB albedo and, for a g field, g; ``g_shared`` a scalar or None.
-    Callable like a :class:`~nrt.modules.medium.Medium` (``voxels(x)`` ->
+    Callable like a :class:`~nrt.modules.fields.medium.Medium` (``voxels(x)`` ->
     :class:`MediumProperties`); :meth:`sigma_t` reads only the extinction."""
 
     def __init__(self, stacked: torch.Tensor, channels: int, phase: str,

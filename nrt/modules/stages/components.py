@@ -6,7 +6,7 @@ A stage-2 model config picks its light field and medium by config group
 ``_target_`` and ``_partial_: true``: Hydra hands the stage a :func:`functools.partial`, and
 the stage calls it with what only it knows (the scene's effects, the EA density field).
 The stage then checks the component against the protocol it needs
-(:mod:`nrt.modules.protocols`), so a representation that does not fit is refused naming
+(:mod:`nrt.modules.fields.protocols`), so a representation that does not fit is refused naming
 the config group and the members it lacks.
 
 Checkpoints must hold no pickled code (``torch.load`` reads them with ``weights_only``), so

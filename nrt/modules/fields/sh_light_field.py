@@ -17,7 +17,7 @@ in-scattering of *all* light, ``sum g^l (u_lm + c_lm) Y_lm(w)``, costs two grid 
 which makes the transport target (:mod:`nrt.losses.transport`) cheap to march.
 
 It is the split stage's default light field (``conf/model/light_field/sh_grid.yaml``; the
-protocol: :class:`~nrt.modules.protocols.ScatteredLightField`).
+protocol: :class:`~nrt.modules.fields.protocols.ScatteredLightField`).
 """
 
 from __future__ import annotations
