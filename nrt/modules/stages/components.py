@@ -15,6 +15,11 @@ a stage records each factory as its config (:func:`factory_config`, a plain dict
 ``load_from_checkpoint`` rebuilds the stage. Checkpoints written before these were
 components hold the factory's keywords alone (no ``_target_``); a stage reads them with a
 ``legacy`` translation.
+
+Checkpoints and run folders written before the layout of 2026-11-23 (encodings, fields and
+stages in subpackages of :mod:`nrt.modules`) name their classes by the old module paths;
+:data:`MOVED_MODULES` maps those to today's, and :func:`current_target` applies it where a
+recorded ``_target_`` is read (here, and ``nrt-eval`` for a run's model).
 """
 
 from __future__ import annotations
@@ -25,6 +30,33 @@ from collections.abc import Callable
 from hydra.utils import instantiate
 
 from nrt.errors import ConfigError
+
+MOVED_MODULES: dict[str, str] = {
+    f"nrt.modules.{name}": f"nrt.modules.{home}.{name}"
+    for home, names in (("encodings", ("hash_grid", "siren", "activations")),
+                        ("fields", ("ea_field", "light_field", "sh_light_field", "medium",
+                                    "voxel_medium", "protocols", "coarse_to_fine")),
+                        ("stages", ("stage", "ea", "generative_ea", "rte", "rte_split", "dpt",
+                                    "schedules", "components")))
+    for name in names}
+"""Old module path -> today's, for ``_target_`` strings recorded before the layout."""
+
+
+def current_target(target: str) -> str:
+    """A recorded ``_target_`` (``module.Class``) with a pre-layout module path replaced by
+    today's (:data:`MOVED_MODULES`); others unchanged."""
+    module, _, name = target.rpartition(".")
+    return f"{MOVED_MODULES.get(module, module)}.{name}"
+
+
+def current_targets(config):
+    """``config`` (nested dicts and lists) with every ``_target_`` made current."""
+    if isinstance(config, dict):
+        return {k: current_target(v) if k == "_target_" and isinstance(v, str)
+                else current_targets(v) for k, v in config.items()}
+    if isinstance(config, list):
+        return [current_targets(v) for v in config]
+    return config
 
 
 def factory_config(factory: functools.partial) -> dict:
@@ -45,7 +77,7 @@ def as_factory(component, group: str,
     config group in errors (``light_field``)."""
     if isinstance(component, dict):
         config = component if "_target_" in component or legacy is None else legacy(component)
-        component = instantiate(config, _convert_="all")
+        component = instantiate(current_targets(config), _convert_="all")
     if isinstance(component, functools.partial):
         return component
     raise ConfigError(
