@@ -19,7 +19,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from nrt.cli.checks import check_budget, check_mode
+from nrt.cli.checks import check_arguments, check_budget, check_mode
 from nrt.cli.common import run_app
 from nrt.errors import NrtError
 from nrt.run_dirs import (
@@ -101,6 +101,7 @@ def train_task(cfg: DictConfig) -> dict:
     # model and callbacks themselves (e.g. stage 2 on truncated scattering orders).
     check_budget(cfg)
     check_mode(cfg)
+    check_arguments(cfg, HydraConfig.get().runtime.choices)
     ckpt = resume_checkpoint(cfg, run_dir)
     ea_ckpt = resolve_ea_checkpoint(cfg, read_run_info(run_dir).get("ea_ckpt") if ckpt else None)
     if ea_ckpt is not None:

@@ -269,7 +269,8 @@ class RTEModule(RadiativeTransferStage):
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.check_objectives(weights, OBJECTIVES)
-        check_learning_rates(lr, "model.lr")
+        check_learning_rates(lr, "model.lr", ("light", "medium")
+                             + (("density",) if density.get("train") else ()))
         self.light: RadianceField = build(make_light, RadianceField, "light_field", FITS)
         if self.learns_medium:
             self.medium = build(make_medium, ModulatedMedium, "medium", FITS, effects,

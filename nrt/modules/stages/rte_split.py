@@ -97,7 +97,7 @@ class SplitRTEModule(RadiativeTransferStage):
         self.check_objectives(weights, OBJECTIVES,
                               " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
         check_tonemap(photo_tonemap)
-        check_learning_rates(lr, "model.lr")
+        check_learning_rates(lr, "model.lr", ("light", "medium"))
         self.light: ScatteredLightField = build(make_light, ScatteredLightField, "light_field",
                                                 FITS, effects=effects)
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)

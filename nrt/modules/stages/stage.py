@@ -37,9 +37,20 @@ from nrt.errors import ConfigError
 from nrt.modules.stages.schedules import training_progress
 
 
-def check_learning_rates(lr: float | dict[str, float], key: str) -> None:
-    """Refuse learning rates (one, or a dict of them) that are not positive numbers; ``key``
-    names them in the message (``model.lr``)."""
+def check_learning_rates(lr: float | dict[str, float], key: str,
+                         parts: tuple[str, ...] | None = None) -> None:
+    """Refuse learning rates that are not positive numbers; ``key`` names them in the
+    message (``model.lr``). ``parts``: the rate is a mapping that must give each of these
+    (one per parameter group, e.g. ``light``, ``medium``); None: one number."""
+    if parts is not None:
+        missing = [p for p in parts if not isinstance(lr, dict) or p not in lr]
+        if missing:
+            raise ConfigError(f"{key}={lr}: this stage takes one learning rate per part, "
+                              f"{', '.join(parts)}; {', '.join(missing)} missing. Set each: "
+                              + " ".join(f"{key}.{p}=<rate>" for p in parts) + ".")
+    elif isinstance(lr, dict):
+        raise ConfigError(f"{key}={lr}: this stage takes one learning rate, a positive number "
+                          f"({key}=0.01), not a mapping.")
     for name, rate in (lr.items() if isinstance(lr, dict) else [("", lr)]):
         if isinstance(rate, bool) or not isinstance(rate, int | float) or rate <= 0:
             raise ConfigError(f"{key}{'.' + name if name else ''}={rate}: a learning rate must "
