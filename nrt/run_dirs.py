@@ -5,6 +5,12 @@ A resumed run must not overwrite what the first one wrote: its Hydra config goes
 ``.hydra/<tag>/`` and its CSV log to ``csv/<tag>/``, with ``tag = resumed-<timestamp>``
 (:func:`resume_tag`); TensorBoard adds new event files beside the old ones.
 
+In a multirun (``nrt-train -m``) every job gets ``outputs/multirun/<timestamp>-<pid>/<n>``;
+with ``resume=true`` each job continues instead in the newest earlier job folder of any
+sweep whose overrides equal its own (``resume`` aside, and any other key of
+``hydra.job.config.override_dirname.exclude_keys``) and that saved a checkpoint
+(:func:`job_subdir`), and the new sweep folder keeps only Hydra's ``multirun.yaml``.
+
 A start that fails (a config mistake, a missing checkpoint) leaves nothing behind:
 :func:`discard_failed_start` removes the folder it created, or a resumed run's config copy;
 in a multirun the job's folder ``<sweep>/<n>``, and the sweep's folder
@@ -69,6 +75,50 @@ def sweep_dir(base: str) -> str:
     return _chosen[key]
 
 
+def _kept(overrides, exclude_keys) -> list[str]:
+    """Task overrides without those of ``exclude_keys`` (``resume``), sorted."""
+    def key(o: str) -> str:
+        return o.split("=", 1)[0].lstrip("+~")
+    return sorted(str(o) for o in overrides if key(str(o)) not in set(exclude_keys))
+
+
+def earlier_job(multirun: str | Path, overrides, exclude_keys=("resume",),
+                exclude_sweep: str | Path | None = None) -> Path | None:
+    """The newest job folder ``<multirun>/<sweep>/<n>`` (outside the sweep ``exclude_sweep``)
+    that saved ``checkpoints/last.ckpt`` and whose task overrides (``.hydra/overrides.yaml``)
+    equal ``overrides``, both without the keys ``exclude_keys``."""
+    from omegaconf import OmegaConf
+
+    wanted, found = _kept(overrides, exclude_keys), []
+    for ckpt in Path(multirun).glob(f"*/*/{LAST_CKPT}"):
+        job = ckpt.parent.parent
+        record = job / ".hydra" / "overrides.yaml"
+        if exclude_sweep is not None and job.parent.resolve() == Path(exclude_sweep).resolve():
+            continue
+        if record.is_file() and _kept(OmegaConf.load(record), exclude_keys) == wanted:
+            found.append(job)
+    return max(found, key=lambda j: (j / LAST_CKPT).stat().st_mtime, default=None)
+
+
+def job_subdir(num, resume) -> str:
+    """Resolver ``${nrt_job_subdir:num,resume}`` (``hydra.sweep.subdir``, resolved while
+    Hydra's config is the job's): the job's number; with ``resume=true`` the absolute path
+    of the :func:`earlier_job` with this job's overrides, the keys of
+    ``hydra.job.config.override_dirname.exclude_keys`` left out (``resume``; add e.g.
+    ``budget.ea.steps`` to continue with more steps), when there is one. Hydra joins the
+    answer to the sweep's folder, which leaves an absolute path whole."""
+    from hydra.core.hydra_config import HydraConfig
+
+    hydra_cfg = HydraConfig.get()
+    key = ("job", str(hydra_cfg.sweep.dir), str(num))
+    if key not in _chosen:
+        found = earlier_job(Path(str(hydra_cfg.sweep.dir)).parent, hydra_cfg.overrides.task,
+                            hydra_cfg.job.config.override_dirname.exclude_keys,
+                            exclude_sweep=hydra_cfg.sweep.dir) if resume is True else None
+        _chosen[key] = str(found.resolve()) if found is not None else str(num)
+    return _chosen[key]
+
+
 def resume_tag(resume) -> str:
     """Resolver ``${nrt_resume_tag:resume}``: ``""`` for a new run, else ``resumed-<time>``."""
     if resume in (None, False):
@@ -78,26 +128,28 @@ def resume_tag(resume) -> str:
 
 
 def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: float,
-                         sweep_job: bool = False) -> None:
+                         sweep: str | Path | None = None) -> None:
     """Undo what a start that failed wrote into ``run_dir``, unless it saved a checkpoint
     after ``since`` (then it trained, and its folder is a run): a folder that this process
     named (:func:`new_run_dir`) goes, with the folders above it that did not exist before
-    and are empty now; a multirun job's folder (``sweep_job``: Hydra made ``<sweep>/<n>`` for
-    this job) goes, and its sweep's folder too when it holds nothing but Hydra's
-    ``multirun.yaml``; in a resumed run's folder only this start's config copy
+    and are empty now; a multirun job's new folder ``<sweep>/<n>`` goes (``sweep``: the
+    sweep's folder, given for a multirun job), and the sweep's folder too when it holds
+    nothing but Hydra's ``multirun.yaml``; in a resumed run's folder (a single run's, or an
+    earlier sweep's job that a multirun resumed) only this start's config copy
     (``config_subdir``, ``.hydra/resumed-<time>``) goes."""
     run_dir = Path(os.path.abspath(run_dir))
     if any(p.stat().st_mtime >= since for p in (run_dir / "checkpoints").glob("*.ckpt")):
         return
+    sweep = Path(os.path.abspath(sweep)) if sweep is not None else None
     if run_dir in _created:
         _remove_created(run_dir)
-    elif sweep_job:
+    elif sweep is not None and run_dir.parent == sweep:
         shutil.rmtree(run_dir, ignore_errors=True)
-        sweep = run_dir.parent
-        if sweep in _created and all(p.name == SWEEP_FILE for p in sweep.iterdir()):
-            _remove_created(sweep)
     elif config_subdir and Path(config_subdir).name.startswith(RESUMED_PREFIX):
         shutil.rmtree(run_dir / config_subdir, ignore_errors=True)
+    if sweep in _created and sweep.is_dir() and \
+            all(p.name == SWEEP_FILE for p in sweep.iterdir()):
+        _remove_created(sweep)
 
 
 def _remove_created(folder: Path) -> None:

@@ -8,12 +8,16 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
-from conftest import compose_config
+import torch
+from conftest import compose_config, train_command
+from omegaconf import OmegaConf
 
 from nrt.cli.checks import check_arguments
 from nrt.errors import ConfigError
+from nrt.run_dirs import LAST_CKPT, SWEEP_FILE, earlier_job
 
 MISTAKES = [  # (command, overrides, what the message must say)
     ("train", ("foo=1",), "foo=1: the config has no key 'foo'"),
@@ -103,3 +107,73 @@ def test_values_of_the_wrong_shape_are_refused_with_the_fix(overrides, needle):
 def test_every_default_composition_has_the_shapes_its_constructors_take(overrides):
     cfg = compose_config("train", ["preset=tiny", *overrides])
     check_arguments(cfg)
+
+
+def multirun(out: Path, data_root: Path, *overrides: str) -> subprocess.CompletedProcess:
+    cmd, env = train_command(out, data_root, *overrides)
+    return subprocess.run([*cmd[:3], "-m", *cmd[3:]], env=env, capture_output=True, text=True,
+                          timeout=600)
+
+
+def test_resume_in_a_multirun_without_earlier_jobs_is_a_clear_error(tmp_path):
+    """``nrt-train -m ... resume=true`` where no earlier job has the overrides: the first
+    job says so (and how to continue with other values) before any data, status 2, and
+    the sweep leaves no folder."""
+    proc = multirun(tmp_path / "out", tmp_path / "datasets", "seed=0,1", "resume=true")
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    message = proc.stderr.split("nrt: error: ", 1)[-1]
+    assert "resume=true in a multirun continues each job" in message and "job 0" in message
+    assert "exclude_keys=[resume,<key>]" in message and "\n" not in message.strip()
+    assert not (tmp_path / "out").exists()
+    assert not (tmp_path / "datasets").exists()
+
+
+def test_earlier_job_is_the_newest_with_the_same_overrides(tmp_path):
+    """A job matches on its task overrides without the excluded keys, in any order, only
+    with a checkpoint, never in the sweep being run; the newest checkpoint wins."""
+    def job(sweep: str, num: int, overrides: list[str], ckpt: bool = True) -> Path:
+        folder = tmp_path / "multirun" / sweep / str(num)
+        (folder / ".hydra").mkdir(parents=True)
+        OmegaConf.save(OmegaConf.create(overrides), folder / ".hydra" / "overrides.yaml")
+        if ckpt:
+            (folder / LAST_CKPT).parent.mkdir()
+            (folder / LAST_CKPT).write_text(sweep)
+        return folder
+
+    old = job("a", 0, ["stage=ea", "seed=1", "budget.ea.steps=20"])
+    job("a", 1, ["stage=ea", "seed=0", "budget.ea.steps=20"])
+    job("b", 0, ["stage=ea", "seed=1", "budget.ea.steps=20"], ckpt=False)
+    current = job("c", 0, ["seed=1", "stage=ea", "budget.ea.steps=20"])
+    wanted = ["seed=1", "budget.ea.steps=40", "stage=ea", "resume=true"]
+    base = tmp_path / "multirun"
+    assert earlier_job(base, wanted, exclude_sweep=base / "c") is None  # steps differ
+    keys = ("resume", "budget.ea.steps")
+    assert earlier_job(base, wanted, keys, exclude_sweep=base / "c") == old
+    assert earlier_job(base, wanted, keys) == current  # newest, when its sweep is not running
+    assert earlier_job(base, ["stage=ea", "seed=2"], keys) is None
+
+
+@pytest.mark.slow
+def test_resume_in_a_multirun_continues_each_job_in_its_own_folder(tmp_path, tiny_dataset):
+    """A sweep of two seeds, then the same sweep with resume=true and more steps (the steps
+    key excluded from the match): each job continues in its own folder to the new step
+    count, with its own seed, and no new job folder appears."""
+    out, sweep = tmp_path / "out", ("seed=0,1", "budget.val_every=20", "logger=[csv]")
+    first = multirun(out, tiny_dataset.parent, *sweep, "budget.ea.steps=20")
+    assert first.returncode == 0, first.stderr[-3000:]
+    jobs = sorted(p.parent.parent for p in out.glob(f"multirun/*/*/{LAST_CKPT}"))
+    assert len(jobs) == 2
+    again = multirun(out, tiny_dataset.parent, *sweep, "budget.ea.steps=30", "resume=true",
+                     "hydra.job.config.override_dirname.exclude_keys=[resume,budget.ea.steps]")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert sorted(p.parent.parent for p in out.glob(f"multirun/*/*/{LAST_CKPT}")) == jobs
+    for job in jobs:
+        saved = torch.load(job / LAST_CKPT, weights_only=False, map_location="cpu")
+        assert saved["global_step"] == 30
+        first_seed = [o for o in OmegaConf.load(job / ".hydra" / "overrides.yaml")
+                      if o.startswith("seed=")]
+        resumed = OmegaConf.load(next(job.glob(".hydra/resumed-*/overrides.yaml")))
+        assert [o for o in resumed if o.startswith("seed=")] == first_seed
+        assert list(job.glob("csv/resumed-*/metrics.csv"))
+    new_sweeps = [p for p in (out / "multirun").iterdir() if p != jobs[0].parent]
+    assert [sorted(c.name for c in p.iterdir()) for p in new_sweeps] == [[SWEEP_FILE]]

@@ -106,12 +106,12 @@ def test_a_failed_sweep_job_removes_its_folder_and_an_empty_sweep(tmp_path):
         (sweep / job / ".hydra").mkdir(parents=True)
     (sweep / SWEEP_FILE).write_text("hydra: {}")
     (sweep / "0" / "run.json").write_text("{}")  # job 0 ran
-    discard_failed_start(sweep / "1", ".hydra", time.time(), sweep_job=True)
+    discard_failed_start(sweep / "1", ".hydra", time.time(), sweep)
     assert sorted(p.name for p in sweep.iterdir()) == ["0", SWEEP_FILE]
     alone = Path(sweep_dir(str(tmp_path / "out" / "multirun")))
     (alone / "0" / ".hydra").mkdir(parents=True)
     (alone / SWEEP_FILE).write_text("hydra: {}")
-    discard_failed_start(alone / "0", ".hydra", time.time(), sweep_job=True)
+    discard_failed_start(alone / "0", ".hydra", time.time(), alone)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["multirun"]
 
 

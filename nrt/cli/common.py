@@ -1,7 +1,7 @@
 """What every nrt command does before and around its Hydra task.
 
 - registers the OmegaConf resolvers the configs use (``nrt_pid``, ``nrt_run_dir``,
-  ``nrt_sweep_dir``, ``nrt_eval_dir``, ``nrt_resume_tag``);
+  ``nrt_sweep_dir``, ``nrt_job_subdir``, ``nrt_eval_dir``, ``nrt_resume_tag``);
 - tunes glibc malloc so large per-step temporaries are reused instead of being mmap'd
   and unmapped every step (DESIGN.md section 4: 3-4x faster training steps on CPU);
 - lets idle OpenMP threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``, unless set):
@@ -73,6 +73,8 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("nrt_eval_dir", run_dirs.eval_dir)
     if not OmegaConf.has_resolver("nrt_sweep_dir"):
         OmegaConf.register_new_resolver("nrt_sweep_dir", run_dirs.sweep_dir)
+    if not OmegaConf.has_resolver("nrt_job_subdir"):
+        OmegaConf.register_new_resolver("nrt_job_subdir", run_dirs.job_subdir)
     if not OmegaConf.has_resolver("nrt_resume_tag"):
         OmegaConf.register_new_resolver("nrt_resume_tag", run_dirs.resume_tag)
 
@@ -132,8 +134,9 @@ def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
         except NrtError as exc:
             _log_to_files(str(exc))
             hydra_cfg = HydraConfig.get()
+            sweep = hydra_cfg.sweep.dir if hydra_cfg.mode == RunMode.MULTIRUN else None
             run_dirs.discard_failed_start(hydra_cfg.runtime.output_dir, hydra_cfg.output_subdir,
-                                          started, sweep_job=hydra_cfg.mode == RunMode.MULTIRUN)
+                                          started, sweep)
             _fail(exc)
         os.environ[FULL_ERROR] = "1"  # a multirun composes the next job's config
         return result

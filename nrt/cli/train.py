@@ -17,6 +17,7 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.checks import check_arguments, check_budget, check_mode
@@ -34,10 +35,21 @@ log = logging.getLogger(__name__)
 
 def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
     """Checkpoint to continue from: ``resume=true`` -> this run folder's last.ckpt (the
-    run-dir resolver picked the latest run), ``resume=<path>`` -> that file."""
+    run-dir resolver picked the latest run; in a multirun, the job-folder resolver picked
+    the newest earlier job with the same overrides), ``resume=<path>`` -> that file."""
     if cfg.resume in (None, False):
         return None
     ckpt = run_dir / LAST_CKPT if cfg.resume is True else Path(str(cfg.resume))
+    hydra_cfg = HydraConfig.get()
+    if not ckpt.is_file() and cfg.resume is True and hydra_cfg.mode == RunMode.MULTIRUN:
+        excluded = list(hydra_cfg.job.config.override_dirname.exclude_keys)
+        raise NrtError(f"resume=true in a multirun continues each job in the newest earlier "
+                       f"job folder ({Path(hydra_cfg.sweep.dir).parent}/<sweep>/<n>) with the "
+                       f"same overrides, {excluded} left out, that saved {LAST_CKPT}; job "
+                       f"{hydra_cfg.job.num} (overrides: {hydra_cfg.job.override_dirname}) has "
+                       "none. To continue with another value of a key (more steps), add it: "
+                       "'hydra.job.config.override_dirname.exclude_keys=[resume,<key>]'. Run "
+                       "jobs that never saved a checkpoint without resume=true.")
     if not ckpt.is_file():
         raise NrtError(f"resume={cfg.resume}: no checkpoint at '{ckpt}'. resume=true continues "
                        f"the newest run of scene '{cfg.scene.name}', stage '{cfg.stage.name}' "
