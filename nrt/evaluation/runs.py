@@ -18,10 +18,11 @@ from omegaconf import OmegaConf
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
+from nrt.modules.stages.components import current_target
 from nrt.run_dirs import LAST_CKPT, RUN_FILE
 
 if TYPE_CHECKING:
-    from nrt.modules.stage import Stage
+    from nrt.modules.stages.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,8 @@ def open_run(path: str | Path) -> TrainedRun:
     cfg = OmegaConf.load(cfg_file)
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return TrainedRun(path, info["stage"], info["scene"], Path(info["dataset_dir"]),
-                      list(info["environments"]), effects, str(cfg.model._target_))
+                      list(info["environments"]), effects,
+                      current_target(str(cfg.model._target_)))
 
 
 def checkpoint_path(run: TrainedRun, checkpoint: str) -> Path:
