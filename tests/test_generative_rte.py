@@ -277,12 +277,12 @@ def cross_table(model: GenerativeRTEModule, gts: list[dict]) -> torch.Tensor:
 def test_each_code_reconstructs_its_own_member_best(trained):
     """Member i's medium decoded from every code j, scored against member i's ground truth.
 
-    Measured at the preset (two runs, 2026-11-23; docs/generative.md): the own code was the
-    best of every row in the CLI run (own/next-best 0.34-0.88) but of three rows only in
-    this in-process run, whose member 0 came second to the code of member 2, its near twin
-    (31.4 against 26.0; their true media differ by 52): the strict reading is not robust at
-    this preset yet. Against the mean of the other codes the own code scored 0.24-0.66 of
-    it in both runs, while the EA start fails that for member 1 (3.0: its density several
+    Measured at the preset (three runs, 2026-11-23; docs/generative.md): the own code was
+    the best of every row in two CLI runs (seeds 0 and 1, own/next-best 0.34-0.92) but of
+    three rows only in this in-process run, whose member 0 came second to the code of
+    member 2, its near twin (31.4 against 26.0; their true media differ by 52): the strict
+    reading is not robust at this preset yet. Against the mean of the other codes the own
+    code scored 0.24-0.69 of it in all three runs, while the EA start fails that for member 1 (3.0: its density several
     times too dense). The test asks every row for own < 0.8 x the others' mean."""
     table = cross_table(trained["model"], truths(trained["dm"]))
     for i in range(K):
