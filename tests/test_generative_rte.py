@@ -282,8 +282,9 @@ def test_each_code_reconstructs_its_own_member_best(trained):
     three rows only in this in-process run, whose member 0 came second to the code of
     member 2, its near twin (31.4 against 26.0; their true media differ by 52): the strict
     reading is not robust at this preset yet. Against the mean of the other codes the own
-    code scored 0.24-0.69 of it in all three runs, while the EA start fails that for member 1 (3.0: its density several
-    times too dense). The test asks every row for own < 0.8 x the others' mean."""
+    code scored 0.24-0.69 of it in all three runs, while the EA start fails that for member
+    1 (3.0: its density several times too dense). The test asks every row for own < 0.8 x
+    the others' mean."""
     table = cross_table(trained["model"], truths(trained["dm"]))
     for i in range(K):
         others = torch.cat((table[i, :i], table[i, i + 1:]))
