@@ -106,6 +106,27 @@ def run_train(out: Path, data_root: Path, *overrides: str, stage: str = "ea"
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
 
 
+def refusal(returncode: int, stderr: str) -> str:
+    """The one ``nrt: error:`` line of a command that refused its input as a user error:
+    status 2, one such line, no traceback."""
+    assert returncode == 2, stderr[-2000:]
+    errors = [line for line in stderr.splitlines() if line.startswith("nrt: error:")]
+    assert len(errors) == 1 and "Traceback" not in stderr, stderr
+    return errors[0]
+
+
+def resume_in_place(out: Path, data_root: Path, run: Path, *overrides: str,
+                    stage: str = "ea") -> dict:
+    """``nrt-train ... resume=true`` (:func:`run_train`): it must succeed and continue
+    ``run`` in place (no other run folder); returns the run's last checkpoint, loaded."""
+    import torch
+
+    proc = run_train(out, data_root, *overrides, "resume=true", stage=stage)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert sorted(run.parent.iterdir()) == [run]
+    return torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
+
+
 def read_csv_metrics(run_dir: Path) -> list[dict]:
     with open(run_dir / "csv" / "metrics.csv") as f:
         return list(csv.DictReader(f))
