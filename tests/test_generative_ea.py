@@ -277,7 +277,8 @@ def test_stage_2_refuses_a_generative_checkpoint(short):
 @pytest.mark.parametrize("overrides, message", [
     (("mode=generative",), "scene=default is one scene"),
     (("scene=family",), "only as a whole with mode=generative"),
-    (("stage=rte", *FAMILY), "built for stage=ea only"),
+    (("stage=forward", *FAMILY), "built for stage=ea and stage=rte"),
+    (("stage=rte", *FAMILY, "experiment=rte_paper"), "single-scene formulation"),
     ((*FAMILY, "mode.latent.dim=0"), "mode.latent.dim=0"),
     ((*FAMILY, "mode.latent.modulation_hidden=2.5"), "mode.latent.modulation_hidden"),
     ((*FAMILY, "mode.latent.prior_weight=-1"), "mode.latent.prior_weight=-1"),

@@ -84,6 +84,41 @@ class VoxelisedMedium(Protocol):
         """Properties on ``resolution``^3 cells in the ground truth's layout."""
 
 
+class LatentScatteredLightField(Protocol):
+    """The light field of generative stage 2 (``stage=rte mode=generative``): the scattered
+    light of every family member, decoded from its latent code. Built as
+    ``factory(effects=scene.effects)`` (members and d_z are its config's keywords)."""
+
+    bbox: torch.Tensor
+    radiance_scale: torch.Tensor
+    degree: int
+
+    def member(self, index: int, code: torch.Tensor) -> ScatteredLightField:
+        """Member ``index``'s light under ``code`` (d_z,), with the member's uncollided
+        cache: a :class:`ScatteredLightField` for the objectives."""
+
+
+class LatentVoxelisedMedium(Protocol):
+    """The medium of generative stage 2: one baked EA density per family member, modulated
+    under a latent code. Built as ``factory(effects)`` (members and d_z are its config's
+    keywords)."""
+
+    bbox: torch.Tensor
+
+    def set_density(self, density, member: int) -> None:
+        """Bake member ``member``'s ``density(points (N, 3)) -> (N,)`` into the medium."""
+
+    def member_voxels(self, member: int, code: torch.Tensor):
+        """Member ``member``'s properties on cells under ``code`` (d_z,), differentiable
+        (:class:`~nrt.modules.voxel_medium.Voxels`)."""
+
+    def voxels_for(self, density: torch.Tensor, code: torch.Tensor):
+        """The properties of any baked density (R, R, R, 1) under any code."""
+
+    def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
+        """Adapt to the run's ``progress`` in [0, 1] (coarse to fine); True if it changed."""
+
+
 class ModulatedMedium(Protocol):
     """The learned medium of the paper's formulation: a
     :class:`~nrt.modules.medium.NeuralMedium`-like field modulating the EA density field.
