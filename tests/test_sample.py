@@ -13,6 +13,8 @@ codes, members and ground truths.
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -319,3 +321,98 @@ def test_missing_fid_weights_name_the_file_and_nrt_weights(family_data, tmp_path
                            env={"NRT_WEIGHTS_DIR": str(empty)})
     assert code == 2 and "nrt: error:" in err and "nrt-weights" in err, err[-2000:]
     assert str(empty / FID_FILE) in err and "fid.enabled=false" in err
+
+
+# ---------------------------------------------- the real path: a generative stage-2 run
+TRAIN_SHORT = ("budget.val_every=100", "budget.val_views=2", "budget.checkpoint_every=100",
+               "render.progress=false", "trainer.enable_progress_bar=false",
+               "logger=[tensorboard]")
+
+
+@pytest.fixture(scope="module")
+def generative_run(family_data, tmp_path_factory) -> tuple[Path, dict]:
+    """``nrt-train stage=ea mode=generative`` (100 steps), then ``stage=rte`` from it (100
+    steps), then ``nrt-sample`` on the stage-2 run, all through the real commands on the
+    test family (~1.5-2 min on 2 shared cores): the sample folder and run.json."""
+    out = tmp_path_factory.mktemp("generative_runs")
+    env = {**os.environ, "NRT_OUTPUT_DIR": str(out)}
+    data_dir = f"paths.data_dir={family_data.family.root.parent}"
+    train = [sys.executable, "-m", "nrt.cli.train", *SMALL, "mode=generative", data_dir,
+             *TRAIN_SHORT]
+    ea = subprocess.run([*train, "stage=ea", "budget.ea.steps=100"], env=env,
+                        capture_output=True, text=True, timeout=600)
+    assert ea.returncode == 0, ea.stderr[-3000:]
+    ea_ckpt = next((out / "family" / "ea").glob("*/checkpoints/last.ckpt"))
+    rte = subprocess.run([*train, "stage=rte", "budget.rte.steps=100",
+                          f"init.ea_ckpt={ea_ckpt}"], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert rte.returncode == 0, rte.stderr[-3000:]
+    run = next((out / "family" / "rte").iterdir())
+    fid = ["fid.n_crops=1", "fid.real_views=2"] if HAVE_FID else ["fid.enabled=false"]
+    sample = subprocess.run([sys.executable, "-m", "nrt.cli.sample", f"run={run}", "n=3",
+                             "render.views=1", "interpolate.steps=7", *fid], env=env,
+                            capture_output=True, text=True, timeout=600)
+    assert sample.returncode == 0, sample.stderr[-3000:]
+    folders = list((run / "sample").iterdir())
+    assert len(folders) == 1, folders
+    return folders[0], json.loads((run / "run.json").read_text())
+
+
+@pytest.mark.slow
+def test_real_samples_render_and_load_in_mitsuba(generative_run):
+    from nrt.data import mitsuba_backend
+
+    folder, _ = generative_run
+    mi = mitsuba_backend.select_variant("auto")
+    for sample in sorted((folder / "samples").iterdir()):
+        grids = load_property_grids(sample / "medium_grids.npz")
+        check_medium(grids, sample.name)  # finite, sigma >= 0, |g| < 1
+        assert float(grids["sigma_a"].sum() + grids["sigma_s"].sum()) > 0  # not empty
+        mi.load_file(str(sample / "volumes" / "medium.xml"))
+        for path in sample.glob("*.exr"):
+            assert np.isfinite(read_exr(path)).all()
+    metrics = json.loads((folder / "metrics.json").read_text())["metrics"]
+    if HAVE_FID:
+        assert all(np.isfinite(metrics[f"fid_{c}_illumination"]) for c in ("train", "novel"))
+
+
+@pytest.mark.slow
+def test_real_reconstruction_matches_the_runs_own_property_metrics(generative_run):
+    """nrt-sample decodes each member from its code and scores it against its ground truth;
+    stage 2's validation callback scored the same checkpoint's members by its own path
+    (PropertyMetrics): the two agree (float32 grids, MSE in float64: 1e-4 relative)."""
+    folder, info = generative_run
+    report = json.loads((folder / "metrics.json").read_text())
+    final = info["final_metrics"]
+    for row in report["members"]:
+        for key in ("sigma_a", "sigma_s", "sigma_t"):
+            logged = final[f"val/mse_{key}_x100_member{row['member']}"]
+            assert row[f"mse_{key}_x100"] == pytest.approx(logged, rel=1e-4, abs=1e-6)
+
+
+@pytest.mark.slow
+def test_real_interpolation_moves_from_one_endpoint_to_the_other(generative_run):
+    """Media decoded along z(t) = (1 - t) z_a + t z_b (7 steps) between the two codes
+    farthest apart. The property MSE (sigma_a, sigma_s, sigma_t) to A must rise and to B
+    fall at every step, within a tolerance of 0.5 % of the endpoints' MSE D per step, and
+    MSE_A + MSE_B must stay <= 1.05 D (a linear blend gives (t^2 + (1 - t)^2) D <= D).
+
+    Why 0.5 %: the decoder is smooth but not linear in z (sigma = rho_EA(x; z) exp(m(x, z))),
+    so MSE_A grows faster than t^2 near one end and flatter near the other. Measured on the
+    tiny family after 300 + 300 steps, over all 6 member pairs and 7 steps: every step moved
+    the right way, the smallest by 0.25 % of D (a linear blend's smallest is
+    (1/6)^2 D = 2.8 %), and MSE_A + MSE_B never exceeded D. A reversal larger than 0.5 % of
+    D, or a sum over 1.05 D, is a medium leaving the segment between the endpoints, not
+    the decoder's curvature."""
+    folder, _ = generative_run
+    rows = json.loads((folder / "metrics.json").read_text())["interpolation"]
+    assert len(rows) == 7 and rows[0]["t"] == 0 and rows[-1]["t"] == 1
+    for key in ("sigma_a", "sigma_s", "sigma_t"):
+        to_a = np.array([r[f"mse_{key}_to_a_x100"] for r in rows])
+        to_b = np.array([r[f"mse_{key}_to_b_x100"] for r in rows])
+        distance = to_a[-1]
+        assert distance > 0 and to_a[0] == 0 and to_b[-1] == 0
+        assert to_b[0] == pytest.approx(distance)
+        assert (np.diff(to_a) >= -0.005 * distance).all(), (key, to_a)
+        assert (np.diff(to_b) <= 0.005 * distance).all(), (key, to_b)
+        assert (to_a + to_b <= 1.05 * distance).all(), (key, to_a + to_b)

@@ -15,9 +15,10 @@ latent code per family member and a decoder from any code to a medium
    ``fid_train_illumination``, the samples under the training sky against the members'
    ground-truth images under it, and ``fid_novel_illumination``, the samples under the
    held-back sky against the members' images under that sky. With ``truth_reference`` the
-   members' true media, rendered exactly as the samples are, are scored the same way
-   (``*_truth``): what a generator that reproduced the training members would score with
-   these image and crop counts, FID's bias at this size;
+   members' true media, rendered exactly as the samples are and taken in turn to make up
+   ``n`` media (the samples' image and crop counts; fresh crop positions on repeats), are
+   scored the same way (``*_truth``): what a generator that reproduced its training
+   members would score at these counts, FID's bias at this size;
 5. scores each member's reconstruction from its own code against its ground truth
    (property MSE x 10^2, ``recon_mse_<property>_x100`` the mean over members);
 6. draws a picture of the samples per sky and a strip of media decoded along
@@ -364,6 +365,9 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
                 for col, stack in render_medium(truth, data, frames, spp,
                                                 seed=1 + settings.n + k).items():
                     truth_renders[col].append(stack)
+            # n media, the members in turn: the samples' image and crop counts
+            truth_renders = {col: [stacks[i % len(stacks)] for i in range(settings.n)]
+                             for col, stacks in truth_renders.items()}
         for col, real in reals.items():
             fid.white = float(real.max())
             fake = torch.as_tensor(np.concatenate(renders[col]))
