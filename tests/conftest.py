@@ -66,6 +66,27 @@ def tiny_dataset(tiny_output_dir) -> Path:
     return folder
 
 
+GENERATIVE_FAMILY = ("preset=tiny", "scene=family", "mode=generative")
+SMALL_FAMILY = ("scene.cameras.num_train=8", "scene.cameras.num_test=2",
+                "scene.cameras.width=24", "scene.cameras.height=24", "scene.spp=16")
+"""The family the generative tests render (K = 4 members of 10 views of 24 x 24 pixels under
+each of the two skies): a third of the tiny preset's pixels, enough to tell the members
+apart."""
+
+
+@pytest.fixture(scope="session")
+def family_dir(tmp_path_factory) -> Path:
+    """The test family (:data:`SMALL_FAMILY`), rendered once per session: its folder
+    (``family.json``); ``paths.output_dir`` is its grandparent. Read-only."""
+    out = tmp_path_factory.mktemp("generative")
+    cfg = compose_config("train", [*GENERATIVE_FAMILY, *SMALL_FAMILY,
+                                   f"paths.output_dir={out}"])
+    from nrt.data.family import ensure_family
+
+    return ensure_family(OmegaConf.to_container(cfg.scene, resolve=True), cfg.paths.data_dir,
+                         progress=False)
+
+
 NRT_TRAIN = [sys.executable, "-m", "nrt.cli.train"]
 
 

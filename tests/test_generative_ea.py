@@ -18,13 +18,19 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
-from conftest import NRT_TRAIN, compose_config, last_value, read_csv_metrics, run_train
+from conftest import (
+    GENERATIVE_FAMILY,
+    NRT_TRAIN,
+    SMALL_FAMILY,
+    compose_config,
+    last_value,
+    read_csv_metrics,
+    run_train,
+)
 from lightning.pytorch.callbacks import ModelCheckpoint
-from omegaconf import OmegaConf
 
 from nrt.cli.checks import check_mode
 from nrt.data.dataset import load_dataset
-from nrt.data.family import ensure_family
 from nrt.errors import ConfigError, DatasetError, NrtError
 from nrt.evaluation.runs import open_run
 from nrt.metrics import psnr
@@ -33,11 +39,7 @@ from nrt.modules.ea_field import EAField
 from nrt.modules.generative_ea import GenerativeEAModule
 
 K = 4  # the tiny preset's budget.family.members
-FAMILY = ("preset=tiny", "scene=family", "mode=generative")
-SMALL = ("scene.cameras.num_train=8", "scene.cameras.num_test=2", "scene.cameras.width=24",
-         "scene.cameras.height=24", "scene.spp=16")
-"""The family the tests render (K members of 10 views of 24 x 24 pixels under each of the
-two skies): a third of the tiny preset's pixels, enough to tell the members apart."""
+FAMILY, SMALL = GENERATIVE_FAMILY, SMALL_FAMILY
 SHORT = ("budget.ea.steps=40", "budget.val_every=20", "budget.val_views=2",
          "budget.checkpoint_every=40")
 """A short in-process run (batches of the tiny preset's 1024 rays; ~3 s): what is logged,
@@ -49,15 +51,6 @@ cores, hence the slow tier)."""
 
 def family_config(tmp: Path, *overrides: str):
     return compose_config("train", [*FAMILY, *SMALL, f"paths.output_dir={tmp}", *overrides])
-
-
-@pytest.fixture(scope="module")
-def family_dir(tmp_path_factory) -> Path:
-    """The test family, rendered once for the module: its folder (``family.json``)."""
-    out = tmp_path_factory.mktemp("generative")
-    cfg = family_config(out)
-    return ensure_family(OmegaConf.to_container(cfg.scene, resolve=True), cfg.paths.data_dir,
-                         progress=False)
 
 
 def build(cfg, family: Path, checkpoint_dir: Path | None = None):

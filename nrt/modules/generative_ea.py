@@ -149,10 +149,10 @@ def save_latents(run_dir: str | Path, codes: torch.Tensor, names: list[str],
 
 
 def load_generative_ea(ckpt_path: str | None) -> tuple[dict, EAField, torch.Tensor,
-                                                       list[dict]]:
+                                                       list[dict] | None]:
     """What generative stage 2 takes from a generative EA checkpoint: the field's config,
     the field (on the CPU), the codes (K, d_z) and the members (``index``, ``seed``,
-    ``name``, as the run's ``run.json`` records them; ``member<k>`` where it has none). A
+    ``name``, as the run's ``run.json`` records them; None where it has none). A
     missing file, or a single-scene EA run, is a user error naming the fix."""
     check_checkpoint_file(ckpt_path, "nrt-train stage=ea mode=generative scene=family")
     saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
@@ -165,6 +165,4 @@ def load_generative_ea(ckpt_path: str | None) -> tuple[dict, EAField, torch.Tens
     module = GenerativeEAModule.load_from_checkpoint(ckpt_path, map_location="cpu")
     codes = module.codes.detach().clone()
     info = read_run_info(Path(ckpt_path).resolve().parent.parent)
-    members = info.get("members") or [{"index": k, "seed": k, "name": f"member{k}"}
-                                      for k in range(len(codes))]
-    return field, module.field, codes, members
+    return field, module.field, codes, info.get("members")

@@ -5,12 +5,16 @@ latent code per member (the auto-decoder of :mod:`nrt.modules.generative_ea`, co
 
 - **Codes.** ``codes`` (K, d_z) start from the generative EA run's and stay optimisable
   (their own Adam group, ``latent_lr``, under the L2 prior ``latent_prior_weight * mean_k
-  |z_k|^2``).
+  |z_k|^2``). The prior acts only while the photo objective does: alone (during the light
+  field's warm-up) Adam would scale its tiny gradient up to steps of ``latent_lr`` and pull
+  every code to the origin, erasing the members' differences (measured: 100 such steps
+  made the four tiny members' media alike).
 - **Medium** (:class:`~nrt.modules.voxel_medium.LatentVoxelMedium`): member k's density is
-  the frozen EA field evaluated under z_k, baked on voxels (re-baked from the current codes
-  whenever the uncollided cache is refreshed: no gradient flows through the EA field); its
-  modulation (sigma_t exponents and albedo logits, ``parametrization=extinction``) is an
-  MLP of shared grid features of x (coarse to fine) concatenated with z_k.
+  the frozen EA field evaluated under z_k on the voxels (the field's hash features at the
+  cell centres are computed once; its modulation by z and its density MLP run every step,
+  so the density follows the code, with gradient); its modulation (sigma_t exponents and
+  albedo logits, ``parametrization=extinction``) is an MLP of shared grid features of x
+  (coarse to fine) concatenated with z_k.
 - **Light** (:class:`~nrt.modules.sh_light_field.LatentSHGridLightField`): the scattered
   light's SH coefficients are an MLP of shared grid features of x concatenated with z_k;
   each member keeps its own cache of the uncollided light, all under the family's one
@@ -48,7 +52,7 @@ from nrt.modules.medium import property_grids
 from nrt.modules.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.modules.rte_split import RAY_KEYS, SplitRTEModule, detached
 from nrt.modules.stage import check_learning_rates
-from nrt.modules.voxel_medium import bake
+from nrt.physics.volume import cell_centres
 
 log = logging.getLogger(__name__)
 
@@ -105,47 +109,70 @@ class GenerativeRTEModule(SplitRTEModule):
                     f"dimension {codes.shape[1]}, but this run has scene.family.members="
                     f"{members} and mode.latent.dim={latent_dim}; start from an EA run of the "
                     "same family and mode settings.")
-            member_info = [{"name": str(m["name"]), "seed": int(m["seed"])} for m in info]
+            member_info = None if info is None else \
+                [{"name": str(m["name"]), "seed": int(m["seed"])} for m in info]
             self.hparams.update(ea_field=ea_field, member_info=member_info)
         else:  # loaded from this stage's checkpoint: the values follow
             field, codes = EAField(**ea_field), torch.zeros(members, latent_dim)
         self.ea = field.requires_grad_(False)
+        self._encoding: torch.Tensor | None = None
         self.codes = nn.Parameter(codes.clone())
 
     # ------------------------------------------------------------- the family
     def member_names(self) -> list[str]:
-        """The members' scene names, in the order of ``codes``' rows."""
-        return [m["name"] for m in self.hparams.member_info]
+        """The members' scene names, in the order of ``codes``' rows (``member<k>`` before a
+        run whose EA run recorded none has seen its family)."""
+        info = self.hparams.member_info
+        return [m["name"] for m in info] if info else \
+            [f"member{k}" for k in range(self.codes.shape[0])]
 
     def member_seeds(self) -> list[int]:
-        return [int(m["seed"]) for m in self.hparams.member_info]
+        info = self.hparams.member_info
+        return [int(m["seed"]) for m in info] if info else list(range(self.codes.shape[0]))
 
     def setup(self, stage: str) -> None:
         dm = self.datamodule()
         if dm is not None:
             names = [m.name for m in dm.family.members]
+            if self.hparams.member_info is None and len(names) == self.codes.shape[0]:
+                self.hparams.member_info = [{"name": m.name, "seed": m.seed}
+                                            for m in dm.family.members]
             if names != self.member_names():
                 raise DatasetError(f"Family '{dm.dataset_dir}' has members {names}, but the "
                                    f"EA run this stage starts from was trained on "
                                    f"{self.member_names()}; train both stages on one family.")
             self.ea.bbox.copy_(dm.bbox.to(self.ea.bbox))
         super().setup(stage)
+        self._encoding = None  # at the box the datamodule set
 
-    def density_of(self, code: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
-        """The EA density under ``code`` (d_z,): points (N, 3) -> (N,)."""
-        return lambda x: self.ea.density(x, code)
-
-    @torch.no_grad()
     def bake_density(self) -> None:
-        """Bake each member's EA density under its current code into the medium."""
-        for k in range(self.codes.shape[0]):
-            self.medium.set_density(self.density_of(self.codes[k].detach()), k)
+        """Forget the EA features at the medium's cells (:meth:`ea_encoding` computes them
+        again for the box the datamodule set)."""
+        self._encoding = None
+
+    def ea_encoding(self) -> torch.Tensor:
+        """The frozen EA field's hash features (R^3, F) at the centres of the medium's
+        ``density_resolution``^3 cells, ``[z, y, x]``; computed once."""
+        if self._encoding is None:
+            pts = cell_centres(self.medium.density_resolution, self.medium.bbox).reshape(-1, 3)
+            with torch.no_grad():
+                self._encoding = torch.cat([self.ea.encode(pts[i:i + 65536])
+                                            for i in range(0, len(pts), 65536)])
+        return self._encoding
+
+    def density_for(self, code: torch.Tensor) -> torch.Tensor:
+        """The EA density under ``code`` (d_z,) on the medium's cells (R, R, R, 1), >= 0,
+        differentiable in the code."""
+        r = self.medium.density_resolution
+        dens = self.ea.density_of_encoding(self.ea_encoding(), code)
+        return dens.reshape(r, r, r, 1).clamp_min(0.0)
 
     def member_scene(self, member: int):
         """Member ``member``'s medium (voxels, differentiable in the decoder and the code) and
         light (the code without gradient: the light field does not move the codes)."""
         code = self.codes[member]
-        return self.medium.member_voxels(member, code), self.light.member(member, code.detach())
+        return (self.medium.voxels_for(self.density_for(code), code),
+                self.light.member(member, code.detach()))
 
     # --------------------------------------------------------------- training
     def param_groups(self) -> list[dict]:
@@ -175,8 +202,6 @@ class GenerativeRTEModule(SplitRTEModule):
         self._update_resolution()
         start = time.perf_counter()
         due = self.uncollided_due()
-        if due:  # the densities follow the codes
-            self.bake_density()
         scenes = [self.member_scene(k) for k in range(self.codes.shape[0])]
         if due:
             for medium, light in scenes:
@@ -186,13 +211,15 @@ class GenerativeRTEModule(SplitRTEModule):
         opt.zero_grad(set_to_none=True)
         total = self.backward_objectives(lambda name: self.mixed_objective(name, batch, scenes))
         prior = self.latent_prior()
-        self.manual_backward(prior)
+        if "photo" in self.active_weights():  # the codes' regulariser, with their data term
+            self.manual_backward(prior)
+            total = total + prior.detach()
         self.log("train/latent_prior", prior.detach())
         self.log("train/latent_norm", self.codes.detach().norm(dim=-1).mean())
         self.log("train/medium_resolution", float(self.medium.resolution))
         opt.step()
         self.lr_schedulers().step()
-        return torch.as_tensor(total + prior.detach())
+        return torch.as_tensor(total)
 
     # ------------------------------------------------------------- validation
     def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
@@ -207,10 +234,10 @@ class GenerativeRTEModule(SplitRTEModule):
                            ) -> dict[str, torch.Tensor]:
         """The medium decoded from any code (d_z,) on ``resolution``^3 cells, in the layout
         of :meth:`~nrt.modules.stage.Stage.property_grids`, on the CPU: the EA density under
-        the code, baked as in training, modulated under the code."""
+        the code on the medium's cells, modulated under the code, as in training."""
         code = code.to(self.codes)
-        density = bake(self.density_of(code), self.medium.density.shape[1], self.medium.bbox)
-        grids = property_grids(self.medium.voxels_for(density, code).detached(), resolution)
+        voxels = self.medium.voxels_for(self.density_for(code), code).detached()
+        grids = property_grids(voxels, resolution)
         return {k: v.cpu() for k, v in grids.items()}
 
     def member_property_grids(self, member: int, resolution: int) -> dict[str, torch.Tensor]:

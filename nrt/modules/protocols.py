@@ -99,21 +99,17 @@ class LatentScatteredLightField(Protocol):
 
 
 class LatentVoxelisedMedium(Protocol):
-    """The medium of generative stage 2: one baked EA density per family member, modulated
-    under a latent code. Built as ``factory(effects)`` (members and d_z are its config's
-    keywords)."""
+    """The medium of generative stage 2: a member's density on cells (the stage's, from the
+    EA field under the member's code) modulated under a latent code. Built as
+    ``factory(effects)`` (d_z is its config's keyword)."""
 
     bbox: torch.Tensor
-
-    def set_density(self, density, member: int) -> None:
-        """Bake member ``member``'s ``density(points (N, 3)) -> (N,)`` into the medium."""
-
-    def member_voxels(self, member: int, code: torch.Tensor):
-        """Member ``member``'s properties on cells under ``code`` (d_z,), differentiable
-        (:class:`~nrt.modules.voxel_medium.Voxels`)."""
+    density_resolution: int
+    """Cells per axis of the densities it modulates."""
 
     def voxels_for(self, density: torch.Tensor, code: torch.Tensor):
-        """The properties of any baked density (R, R, R, 1) under any code."""
+        """The properties on cells (:class:`~nrt.modules.voxel_medium.Voxels`) of a density
+        (R, R, R, 1) under ``code`` (d_z,), differentiable in both."""
 
     def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
         """Adapt to the run's ``progress`` in [0, 1] (coarse to fine); True if it changed."""

@@ -149,43 +149,38 @@ class VoxelMedium(NeuralMedium):
 
 
 class LatentVoxelMedium(VoxelMedium):
-    """The voxel medium of ``members`` scenes conditioned on latent codes (generative stage
-    2): each member's EA density baked on ``density_resolution``^3 cells
-    (:meth:`set_density`), modulated by the exponents and logits that a
+    """The voxel medium of a scene family conditioned on latent codes (generative stage 2):
+    a density on ``density_resolution``^3 cells that the stage supplies per member (the EA
+    density under the member's code), modulated by the exponents and logits that a
     :class:`~nrt.modules.latent_grid.LatentGridDecoder` decodes from the shared feature grid
-    (coarse to fine, as the plain modulation grid) and the member's code z (``features``
-    channels, an MLP of ``layers`` hidden layers of width ``hidden``)."""
+    (coarse to fine, as the plain modulation grid) and the code z (``features`` channels, an
+    MLP of ``layers`` hidden layers of width ``hidden``). It holds no density itself."""
 
-    def __init__(self, effects: dict, members: int, latent_dim: int, features: int = 16,
-                 hidden: int = 64, layers: int = 1, resolutions: Sequence[int] = (8,),
+    def __init__(self, effects: dict, latent_dim: int, features: int = 16, hidden: int = 64,
+                 layers: int = 1, resolutions: Sequence[int] = (8,),
                  upsample_at: Sequence[float] = (), density_resolution: int = 64,
                  init_albedo: float = 0.8, parametrization: str = "extinction"):
         decoder = partial(LatentGridDecoder, latent_dim=latent_dim, features=features,
                           hidden=hidden, layers=layers)
         super().__init__(effects, resolutions, upsample_at, density_resolution, init_albedo,
                          parametrization, modulation=decoder)
-        r = density_resolution
-        self.density = torch.ones(members, r, r, r, 1)  # the buffer, one density a member
-
-    @torch.no_grad()
-    def set_density(self, density, member: int) -> None:
-        """Bake member ``member``'s ``density(points (N, 3)) -> (N,)`` at the cell centres."""
-        self.density[member] = bake(density, self.density.shape[1],
-                                    self.bbox.to(self.density.device))
+        del self.density  # supplied per member and code by the stage
+        self.density_resolution = int(density_resolution)
 
     def voxels_for(self, density: torch.Tensor, code: torch.Tensor) -> Voxels:
         """The properties of a density (R, R, R, 1) modulated under ``code`` (d_z,), on the
-        density's cells (differentiable in the decoder and the code)."""
+        density's cells (differentiable in the density, the decoder and the code)."""
         return self.compose(density, self.modulation.on_cells(density.shape[0], code))
 
-    def member_voxels(self, member: int, code: torch.Tensor) -> Voxels:
-        """Member ``member``'s baked density modulated under ``code``."""
-        return self.voxels_for(self.density[member], code)
-
     def voxels(self) -> Voxels:
-        raise TypeError("a latent voxel medium holds one medium per member: use "
-                        "member_voxels(member, code) or voxels_for(density, code).")
+        raise TypeError(NO_DENSITY)
 
     def rho(self, x: torch.Tensor) -> torch.Tensor:
-        raise TypeError("a latent voxel medium holds one density per member: use "
-                        "member_voxels(member, code).")
+        raise TypeError(NO_DENSITY)
+
+    def set_density(self, density) -> None:
+        raise TypeError(NO_DENSITY)
+
+
+NO_DENSITY = ("a latent voxel medium holds no density of its own (one per family member and "
+              "code): use voxels_for(density, code).")
