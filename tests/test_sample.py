@@ -36,6 +36,7 @@ from nrt.evaluation.sample import (
     load_family_data,
     make_fid,
     sample_media,
+    white_of,
 )
 from nrt.weights import FID_FILE, weights_dir
 
@@ -147,6 +148,15 @@ def test_invalid_media_are_refused():
         bad[key].view(-1)[0] = value
         with pytest.raises(NrtError, match="not a valid medium"):
             check_medium(bad, "a test")
+
+
+def test_white_ignores_the_few_views_with_the_sun():
+    """White is the median of the images' maxima: one sun-lit view of five, 100x brighter,
+    does not move it (the maximum would darken the other four to a fifth of the range)."""
+    images = torch.full((5, 8, 8, 3), 0.5)
+    images[:, 0, 0] = torch.tensor([0.8, 0.9, 1.0, 1.1, 1.2])[:, None]
+    images[4, 1, 1] = 120.0
+    assert white_of(images) == pytest.approx(1.0)
 
 
 # ------------------------------------------------------------------ sampling a family

@@ -25,8 +25,9 @@ latent code per family member and a decoder from any code to a medium
    ``z(t) = (1 - t) z_a + t z_b`` between two learned codes, with each step's property MSE
    to both endpoints.
 
-Images stay linear radiance; FID maps both sets of a column through
-``log1p(x) / log1p(white)`` with ``white`` the largest value of that column's real images.
+Images stay linear radiance; FID and the pictures map both sets of a column through
+``log1p(x) / log1p(white)``, clamped to [0, 1], with ``white`` the median over the column's
+real images of each image's largest value (:func:`white_of`).
 """
 
 from __future__ import annotations
@@ -278,9 +279,11 @@ def tile(images: Sequence[np.ndarray], columns: int, scale: float, gap: int = 2)
     return out
 
 
-def display_scale(real: torch.Tensor) -> float:
-    """The log-tonemapped maximum of a column's real images: every picture's white."""
-    return float(np.log1p(float(real.max())))
+def white_of(real: torch.Tensor) -> float:
+    """A column's white: the median over its real images (N, H, W, 3) of each image's
+    largest value. The typical image's brightest pixel, so that the few views with the sun
+    in them (100x brighter at tiny) do not darken everything else."""
+    return float(real.amax(dim=(1, 2, 3)).median().clamp_min(1e-6))
 
 
 def export_medium(folder: Path, grids: Mapping, bbox: torch.Tensor, effects: dict,
@@ -369,7 +372,7 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
             truth_renders = {col: [stacks[i % len(stacks)] for i in range(settings.n)]
                              for col, stacks in truth_renders.items()}
         for col, real in reals.items():
-            fid.white = float(real.max())
+            fid.white = white_of(real)
             fake = torch.as_tensor(np.concatenate(renders[col]))
             result.metrics[f"fid_{col}_illumination"] = fid_score(fid, real, fake)
             if truth_renders[col]:
@@ -391,13 +394,13 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
     for col in frames:  # a row per sky, each with its own white
         images = [render_frames(g, data.effects, data.cameras, frames[col][:1], spp,
                                 seed=10_000 + j)[0] for j, g in enumerate(strip)]
-        row = tile(images, len(images), display_scale(reals[col]))
+        row = tile(images, len(images), float(np.log1p(white_of(reals[col]))))
         strip_rows += [row, np.ones((2, row.shape[1], 3))]
     result.pictures["interpolation"] = np.concatenate(strip_rows[:-1], 0)
     for col in frames:
         shown = [stack[0] for stack in renders[col][:settings.picture_max_samples]]
         result.pictures[f"samples_{data.skies[col]}"] = tile(
-            shown, int(np.ceil(np.sqrt(len(shown)))), display_scale(reals[col]))
+            shown, int(np.ceil(np.sqrt(len(shown)))), float(np.log1p(white_of(reals[col]))))
     for name, picture in result.pictures.items():
         save_png(out_dir / f"{name}.png", picture)
     timings["interpolation_pictures_s"] = time.perf_counter() - t0
