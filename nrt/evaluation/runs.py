@@ -61,8 +61,9 @@ def open_run(path: str | Path) -> TrainedRun:
     if "family_dir" in info:
         raise NrtError(f"run='{path}' is a generative run over the scene family "
                        f"'{info['family_dir']}' (mode=generative), which nrt-eval does not "
-                       "evaluate yet; its per-member density grids are in "
-                       "members/<name>/density_grid.npz and its codes in latents.npz.")
+                       "evaluate; nrt-sample run=<it> scores a generative stage-2 run "
+                       "(reconstructions, samples, FID). Its per-member grids are in "
+                       "members/<name>/ and its codes in latents.npz.")
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return TrainedRun(path, info["stage"], info["scene"], Path(info["dataset_dir"]),
                       list(info["environments"]), effects, str(cfg.model._target_))
