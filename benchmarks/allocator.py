@@ -18,8 +18,8 @@ import sys
 _CHILD = r"""
 import sys, time, torch
 from nrt.cli.common import tune_allocator
-from nrt.modules.ea_field import EAField
-from nrt.modules.ea import render_rays
+from nrt.modules.fields.ea_field import EAField
+from nrt.modules.renderers.emission_absorption import render_rays
 tuned = tune_allocator()
 rays, samples, steps = (int(a) for a in sys.argv[1:4])
 torch.manual_seed(0)

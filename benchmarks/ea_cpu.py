@@ -21,7 +21,7 @@ from benchmarks.common import compose_train
 from nrt.cli.common import tune_allocator
 from nrt.data.render import ensure_dataset
 from nrt.metrics import density_agreement, psnr
-from nrt.modules.ea import render_rays
+from nrt.modules.renderers.emission_absorption import render_rays
 from nrt.physics.tonemap import luminance
 
 

@@ -9,8 +9,8 @@ import lightning as L
 import torch
 
 from nrt.errors import ConfigError
-from nrt.modules.schedules import RunClock
-from nrt.modules.stage import Stage
+from nrt.modules.stages.schedules import RunClock
+from nrt.modules.stages.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +22,8 @@ class WallClock(L.Callback, RunClock):
     Validation is not counted (the clock pauses while it runs), so accuracy-versus-time
     curves and budgets measure optimisation alone, whatever the validation cadence. The
     elapsed time is stored in checkpoints: a resumed run continues its clock and budget.
-    Schedules over the run's course read it (:func:`nrt.modules.schedules.training_progress`).
+    Schedules over the run's course read it
+    (:func:`~nrt.modules.stages.schedules.training_progress`).
     """
 
     def __init__(self, budget_s: float | None = None):
@@ -150,15 +151,15 @@ class HeldOutImageMetrics(L.Callback):
 class PropertyMetrics(L.Callback):
     """Medium-property MSE x 10^2 against the dataset's ground truth (DESIGN.md section 3).
 
-    For a stage that learns a medium (:meth:`nrt.modules.stage.Stage.property_grids` is not
+    For a stage that learns a medium (:meth:`nrt.modules.stages.stage.Stage.property_grids` is not
     None) and a dataset with ``ground_truth.npz``: ``val/mse_{sigma_a,sigma_s,sigma_t}_x100``
-    and, where the stage learns g (:attr:`~nrt.modules.stage.Stage.learns_g`: not for an
+    and, where the stage learns g (:attr:`~nrt.modules.stages.stage.Stage.learns_g`: not for an
     isotropic scene or a fixed g), ``val/mse_g_x100`` (weighted by the true sigma_s), at
     step 0 (the starting point of accuracy-versus-time curves), after each validation and
     when training ends; with ``slices``, the middle z-slices learned | true to TensorBoard.
 
     On a scene family, for a stage with a medium per member
-    (:meth:`~nrt.modules.stage.Stage.member_property_grids`): each member's MSEs against its
+    (:meth:`~nrt.modules.stages.stage.Stage.member_property_grids`): each member's MSEs against its
     own ground truth, ``val/mse_<property>_x100_member<k>``, and their mean
     ``val/mse_<property>_x100`` (slices of member 0).
     """
@@ -208,7 +209,7 @@ class PropertyMetrics(L.Callback):
 
     @staticmethod
     def _log_slices(pl_module, learned: dict, truth: dict, with_g: bool) -> None:
-        from nrt.modules.tensorboard import log_image
+        from nrt.tensorboard import log_image
 
         mid = truth["sigma_a"].shape[0] // 2
         for key in ("sigma_a", "sigma_s"):

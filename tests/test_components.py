@@ -1,5 +1,5 @@
 """Stage 2's light field and medium are components chosen by config group
-(``model/light_field=<name>``, ``model/medium=<name>``; :mod:`nrt.modules.components`):
+(``model/light_field=<name>``, ``model/medium=<name>``; :mod:`nrt.modules.stages.components`):
 every such config builds with the formulation it belongs to and is refused with a
 ``ConfigError`` naming its group by the other; the default compositions build the very
 modules they built before the groups existed; checkpoints written before load."""
@@ -18,8 +18,9 @@ from omegaconf import OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
 from nrt.errors import ConfigError
-from nrt.modules.rte import RTEModule
-from nrt.modules.rte_split import SplitRTEModule
+from nrt.modules.stages.components import MOVED_MODULES, current_target
+from nrt.modules.stages.rte import RTEModule
+from nrt.modules.stages.rte_split import SplitRTEModule
 
 FORMULATIONS = {"split": (), "paper": ("experiment=rte_paper",)}
 """Stage 2's formulations: the default (split) stage and the paper's."""
@@ -105,6 +106,30 @@ def test_default_compositions_build_the_modules_of_before(formulation, state):
         assert total == pytest.approx(PAPER_PARAMETER_SUM, rel=1e-9)
 
 
+def pre_layout(config: dict) -> dict:
+    """``config`` with every ``_target_`` as checkpoints wrote it before the layout of
+    2026-11-23 (``nrt.modules.<module>.<Class>``, no subpackage)."""
+    out = {k: pre_layout(v) if isinstance(v, dict) else v for k, v in config.items()}
+    if "_target_" in out:
+        module, _, name = out["_target_"].rpartition(".")
+        out["_target_"] = f"nrt.modules.{module.rsplit('.', 1)[1]}.{name}"
+    return out
+
+
+def test_pre_layout_targets_map_to_importable_classes():
+    """Every module path the layout moved maps to one that imports and holds what the old
+    one held; a current or unrelated target is left alone."""
+    import importlib
+
+    for old, new in MOVED_MODULES.items():
+        assert old.count(".") == 2 and importlib.import_module(new)
+    assert current_target("nrt.modules.rte_split.SplitRTEModule") == \
+        "nrt.modules.stages.rte_split.SplitRTEModule"
+    assert hydra.utils.get_class(current_target("nrt.modules.siren.Siren")).__name__ == "Siren"
+    for same in ("nrt.modules.stages.ea.EAModule", "nrt.data.datamodule.RayDataModule"):
+        assert current_target(same) == same
+
+
 LEGACY = {  # the light_field and medium hyperparameters of checkpoints written before
     SplitRTEModule: ({"degree": 2, "resolution": 12},
                      {"resolutions": [4, 8, 16], "upsample_at": [0.4, 0.6],
@@ -120,7 +145,8 @@ LEGACY = {  # the light_field and medium hyperparameters of checkpoints written 
 def test_checkpoints_load_with_old_and_new_hyperparameters(tmp_path: Path, cls):
     """A checkpoint records the components as configs (plain data, no pickled code) that
     ``load_from_checkpoint`` rebuilds; one written before (the components' keywords alone)
-    loads too, into the same state. The split stage's medium resizes its grid to the
+    and one written before the layout (old module paths in ``_target_``) load too, into the
+    same state. The split stage's medium resizes its grid to the
     resolution the checkpoint reached."""
     torch.manual_seed(0)
     _, model = build("stage=rte", *FORMULATIONS["split" if cls is SplitRTEModule else "paper"])
@@ -133,7 +159,10 @@ def test_checkpoints_load_with_old_and_new_hyperparameters(tmp_path: Path, cls):
     new = dict(model.hparams)
     assert new["light_field"]["_target_"] and new["medium"]["_partial_"] is True
     light, medium = LEGACY[cls]
-    for name, hparams in (("new", new), ("old", {**new, "light_field": light, "medium": medium})):
+    moved = {**new, **{g: pre_layout(new[g]) for g in ("light_field", "medium")}}
+    assert moved["light_field"]["_target_"].count(".") == 3  # nrt.modules.<module>.<Class>
+    for name, hparams in (("new", new), ("old", {**new, "light_field": light, "medium": medium}),
+                          ("moved", moved)):
         path = tmp_path / f"{name}.ckpt"
         torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
                     "pytorch-lightning_version": lightning.__version__}, path)
@@ -144,3 +173,20 @@ def test_checkpoints_load_with_old_and_new_hyperparameters(tmp_path: Path, cls):
             assert name == "old" or recorded == new[group]
         for key, value in model.state_dict().items():
             torch.testing.assert_close(loaded.state_dict()[key], value, msg=key)
+
+
+def test_a_run_folder_from_before_the_layout_names_todays_stage(tmp_path: Path):
+    """nrt-eval reads a run's model class from its saved config: a run written before the
+    layout (``nrt.modules.rte_split.SplitRTEModule``) opens as today's class."""
+    import json
+
+    from nrt.evaluation.runs import open_run
+
+    (tmp_path / ".hydra").mkdir()
+    (tmp_path / "run.json").write_text(json.dumps(
+        {"stage": "rte", "scene": "default", "dataset_dir": "d", "environments": ["sky0"]}))
+    OmegaConf.save({"scene": {"effects": {"phase": "hg"}},
+                    "model": {"_target_": "nrt.modules.rte_split.SplitRTEModule"}},
+                   tmp_path / ".hydra" / "config.yaml")
+    run = open_run(tmp_path)
+    assert hydra.utils.get_class(run.model_target) is SplitRTEModule

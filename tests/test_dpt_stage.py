@@ -29,8 +29,8 @@ from nrt.data.dataset import load_dataset
 from nrt.data.grids import load_property_grids
 from nrt.evaluation.evaluate import image_metrics
 from nrt.evaluation.rerender import render_frames
-from nrt.modules.dpt import DPTModule
-from nrt.modules.ea import load_ea_field
+from nrt.modules.stages.dpt import DPTModule
+from nrt.modules.stages.ea import load_ea_field
 from nrt.physics.volume import cell_centres
 
 STEPS = 60  # budget.dpt.steps of preset tiny: 8^3 cells, doubled to 16^3 at step 30

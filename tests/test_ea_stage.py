@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
-from nrt.modules.ea import EAModule
+from nrt.modules.stages.ea import EAModule
 from nrt.run_dirs import SWEEP_FILE, discard_failed_start, new_run_dir, sweep_dir
 
 

@@ -39,9 +39,9 @@ from nrt.data.family import ensure_family
 from nrt.data.grids import load_property_grids
 from nrt.errors import ConfigError
 from nrt.metrics import property_mse
-from nrt.modules.ea import EAModule
-from nrt.modules.generative_ea import load_generative_ea
-from nrt.modules.generative_rte import GenerativeRTEModule, member_mean
+from nrt.modules.stages.ea import EAModule
+from nrt.modules.stages.generative_ea import load_generative_ea
+from nrt.modules.stages.generative_rte import GenerativeRTEModule, member_mean
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
 
@@ -139,7 +139,7 @@ def assert_valid(grids: dict[str, torch.Tensor], resolution: int) -> None:
 
 def test_stage_composes_the_generative_components():
     cfg = compose_config("train", list(STAGE2))
-    assert cfg.model._target_ == "nrt.modules.generative_rte.GenerativeRTEModule"
+    assert cfg.model._target_ == "nrt.modules.stages.generative_rte.GenerativeRTEModule"
     assert cfg.model.light_field._target_.endswith("LatentSHGridLightField")
     assert cfg.model.medium._target_.endswith("LatentVoxelMedium")
     assert cfg.model.medium.parametrization == "extinction"

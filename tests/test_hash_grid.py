@@ -5,7 +5,7 @@ import math
 
 import torch
 
-from nrt.modules.hash_grid import PRIMES, HashGrid
+from nrt.modules.encodings.hash_grid import PRIMES, HashGrid
 
 
 def reference_encoding(grid: HashGrid, x: torch.Tensor) -> torch.Tensor:

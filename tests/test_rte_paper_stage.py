@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from nrt.data.exr import write_exr
 from nrt.data.render import ensure_dataset
-from nrt.modules import rte as rte_module
+from nrt.modules.stages import rte as rte_module
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 PAPER = "experiment=rte_paper"
@@ -332,11 +332,11 @@ def test_furnace_forward_solve_converges_to_the_environment():
     zero variance there and only optimisation limits the fit. From an initial field ~1
     (error > 50% against c = (3, 5, 8)), 600 steps of RTE + BC reach a mean relative error
     of ~0.7% and a 99th percentile of ~2.6% (measured); the bounds leave 2-3x margin."""
-    from nrt.data.samplers import boundary_samples, uniform_box_points
     from nrt.losses.boundary import boundary_loss
     from nrt.losses.rte import rte_loss
-    from nrt.modules.light_field import LightField
-    from nrt.modules.medium import GroundTruthMedium
+    from nrt.losses.samplers import boundary_samples, uniform_box_points
+    from nrt.modules.fields.light_field import LightField
+    from nrt.modules.fields.medium import GroundTruthMedium
     from nrt.physics.phase import sample_uniform_sphere
 
     torch.manual_seed(0)

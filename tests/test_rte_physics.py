@@ -21,24 +21,24 @@ import torch
 from scipy.stats import chi2, kstest
 
 import nrt.losses.rte as rte_module
-from nrt.data.samplers import (
+from nrt.losses.boundary import boundary_loss
+from nrt.losses.rte import rte_loss, rte_residuals
+from nrt.losses.samplers import (
     DensityPointSampler,
     EnvironmentDirectionSampler,
     boundary_samples,
     collocation_points,
     uniform_box_points,
 )
-from nrt.losses.boundary import boundary_loss
-from nrt.losses.rte import rte_loss, rte_residuals
 from nrt.losses.unbiased import unbiased_square
-from nrt.modules.light_field import LOG_RADIANCE_MAX, LightField
-from nrt.modules.medium import (
+from nrt.modules.encodings.siren import Siren
+from nrt.modules.fields.light_field import LOG_RADIANCE_MAX, LightField
+from nrt.modules.fields.medium import (
     EXPONENT_RANGE,
     GridModulation,
     GroundTruthMedium,
     NeuralMedium,
 )
-from nrt.modules.siren import Siren
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap
 from nrt.physics.inscatter import inscattered_radiance

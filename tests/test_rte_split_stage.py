@@ -21,9 +21,9 @@ from test_rte_paper_stage import (
     trains_finite,
 )
 
-from nrt.modules import rte_split
-from nrt.modules.rte_split import SplitRTEModule
-from nrt.modules.voxel_medium import VoxelMedium
+from nrt.modules.fields.voxel_medium import VoxelMedium
+from nrt.modules.stages import rte_split
+from nrt.modules.stages.rte_split import SplitRTEModule
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
@@ -150,7 +150,7 @@ def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
 def test_medium_waits_for_the_light_field_and_grows_coarse_to_fine(tmp_path, monkeypatch):
     """The photo objective (the medium's only teacher) starts after ``light_warmup`` of the
     run; the modulation grid follows its schedule and its optimizer state restarts at each
-    change (:mod:`nrt.modules.coarse_to_fine`)."""
+    change (:mod:`nrt.modules.fields.coarse_to_fine`)."""
     model, dm = build(tmp_path, "budget.rte.light_warmup=0.5",
                       "budget.rte.medium_resolutions=[2,4]", "budget.rte.medium_upsample_at=[0.5]")
     called: list[tuple[int, str]] = []

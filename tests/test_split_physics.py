@@ -21,16 +21,16 @@ from nrt.cameras import Intrinsics, look_at
 from nrt.data import mitsuba_backend
 from nrt.errors import NrtError
 from nrt.losses.transport import scattered_target, transport_loss
-from nrt.losses.vre import render_view_rays
-from nrt.modules.coarse_to_fine import (
+from nrt.modules.fields.coarse_to_fine import (
     check_schedule,
     decaying_lr,
     resample_parameter,
     resolution_at,
 )
-from nrt.modules.medium import GroundTruthMedium, NeuralMedium
-from nrt.modules.sh_light_field import SHGridLightField
-from nrt.modules.voxel_medium import VoxelMedium
+from nrt.modules.fields.medium import GroundTruthMedium, NeuralMedium
+from nrt.modules.fields.sh_light_field import SHGridLightField
+from nrt.modules.fields.voxel_medium import VoxelMedium
+from nrt.modules.renderers.volume import render_view_rays
 from nrt.physics.direct_light import DirectLights
 from nrt.physics.envmap import EnvironmentDirectionSampler, EnvironmentMap
 from nrt.physics.phase import hg_phase, isotropic_phase, sample_uniform_sphere

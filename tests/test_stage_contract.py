@@ -1,4 +1,4 @@
-"""Every stage keeps the contract of :mod:`nrt.modules.stage` that callbacks, evaluation
+"""Every stage keeps the contract of :mod:`nrt.modules.stages.stage` that callbacks, evaluation
 and the CLI rely on (they no longer probe stages for what they offer)."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import hydra
 import pytest
 from conftest import compose_config
 
-from nrt.modules.stage import Stage
+from nrt.modules.stages.stage import Stage
 
 STAGES = {  # a medium (property grids)? g scored (the default scene's phase is hg)?
     ("ea",): (False, True),

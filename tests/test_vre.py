@@ -44,12 +44,13 @@ from torch import nn
 
 from nrt.cameras import Intrinsics, look_at, pixel_rays
 from nrt.data import mitsuba_backend
-from nrt.data.samplers import boundary_samples, uniform_box_points
 from nrt.losses.boundary import boundary_loss
 from nrt.losses.observation import observation_loss
 from nrt.losses.rte import rte_residuals
-from nrt.losses.vre import transmitted_background, vre_loss, vre_render
-from nrt.modules.medium import GroundTruthMedium, Medium
+from nrt.losses.samplers import boundary_samples, uniform_box_points
+from nrt.losses.vre import vre_loss
+from nrt.modules.fields.medium import GroundTruthMedium, Medium
+from nrt.modules.renderers.volume import transmitted_background, vre_render
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap, texel_directions

@@ -75,7 +75,7 @@ GENERATIVE_STAGES = ("ea", "rte")
 """The stages built in ``mode=generative`` (``conf/mode_stage/generative_<stage>.yaml``)."""
 
 SPLIT_OBJECTIVES = ("photo", "transport")
-"""The objectives of generative stage 2 (:mod:`nrt.modules.rte_split`)."""
+"""The objectives of generative stage 2 (:mod:`nrt.modules.stages.rte_split`)."""
 
 LATENT_COUNTS = {"dim": "d_z, the size of a latent code",
                  "modulation_hidden": "the width of the modulation MLP M(z)"}

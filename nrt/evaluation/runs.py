@@ -18,10 +18,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
+from nrt.modules.stages.components import current_target
 from nrt.run_dirs import LAST_CKPT, RUN_FILE
 
 if TYPE_CHECKING:
-    from nrt.modules.stage import Stage
+    from nrt.modules.stages.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +67,8 @@ def open_run(path: str | Path) -> TrainedRun:
                        "members/<name>/ and its codes in latents.npz.")
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return TrainedRun(path, info["stage"], info["scene"], Path(info["dataset_dir"]),
-                      list(info["environments"]), effects, str(cfg.model._target_))
+                      list(info["environments"]), effects,
+                      current_target(str(cfg.model._target_)))
 
 
 def checkpoint_path(run: TrainedRun | Path, checkpoint: str) -> Path:

@@ -1,5 +1,7 @@
-"""The four objectives of stage 2, one per module, each a pure function of fields and
-sample tensors: :mod:`~nrt.losses.rte` (residual of the radiative transfer equation),
+"""The objectives of stage 2, one per module, each a pure function of fields and sample
+tensors: :mod:`~nrt.losses.rte` (residual of the radiative transfer equation),
 :mod:`~nrt.losses.boundary` (inflow condition), :mod:`~nrt.losses.observation` (photos at
-the box exit) and :mod:`~nrt.losses.vre` (volume rendering of the photos). All losses are
-in units of the light field's ``radiance_scale`` squared."""
+the box exit), :mod:`~nrt.losses.vre` (volume rendering of the photos), and the split
+formulation's :mod:`~nrt.losses.photo` and :mod:`~nrt.losses.transport`; plus where they
+look (:mod:`~nrt.losses.samplers`). The paper formulation's losses are in units of the light
+field's ``radiance_scale`` squared."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from nrt.modules.light_field import LightField
+from nrt.modules.fields.light_field import LightField
 
 
 def boundary_loss(light: LightField, points: torch.Tensor, dirs: torch.Tensor,

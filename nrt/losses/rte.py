@@ -10,18 +10,14 @@ The squared residual is made unbiased with two independent in-scattering estimat
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 
 from nrt.losses.unbiased import unbiased_square
-from nrt.modules.light_field import LightField
-from nrt.modules.medium import Medium, MediumProperties
+from nrt.modules.fields.light_field import LightField
+from nrt.modules.fields.medium import Medium
+from nrt.modules.renderers.volume import DirectSource
 from nrt.physics.inscatter import inscattered_radiance
 from nrt.physics.phase import sample_uniform_sphere
-
-DirectSource = Callable[[torch.Tensor, torch.Tensor, MediumProperties], torch.Tensor]
-"""``(x, w, properties) -> S_direct`` (..., 3): first scattering of the known lights."""
 
 
 def rte_residuals(light: LightField, medium: Medium, points: torch.Tensor, n_dirs: int,

@@ -7,7 +7,7 @@ all light as its source, so at any point ``x`` and travel direction ``w``
 
 marched backward from ``x`` along ``-w`` to the box (length ``l``) in alpha-compositing
 form, with ``S`` the exact SH in-scattering of the cached uncollided light and of ``L_s``
-itself (:meth:`~nrt.modules.sh_light_field.SHGridLightField.inscatter`). The right-hand
+itself (:meth:`~nrt.modules.fields.sh_light_field.SHGridLightField.inscatter`). The right-hand
 side is evaluated without gradient, a fixed-point (source-iteration) step as neural
 radiosity does: each step carries light across the whole box and adds one scattering
 order, where a differential residual moves information one collocation spacing at a time.
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import torch
 
-from nrt.modules.sh_light_field import SHGridLightField
+from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.volume import ray_box_intersect
 

@@ -6,7 +6,7 @@ A stage-2 model config picks its light field and medium by config group
 ``_target_`` and ``_partial_: true``: Hydra hands the stage a :func:`functools.partial`, and
 the stage calls it with what only it knows (the scene's effects, the EA density field).
 The stage then checks the component against the protocol it needs
-(:mod:`nrt.modules.protocols`), so a representation that does not fit is refused naming
+(:mod:`nrt.modules.fields.protocols`), so a representation that does not fit is refused naming
 the config group and the members it lacks.
 
 Checkpoints must hold no pickled code (``torch.load`` reads them with ``weights_only``), so
@@ -15,6 +15,11 @@ a stage records each factory as its config (:func:`factory_config`, a plain dict
 ``load_from_checkpoint`` rebuilds the stage. Checkpoints written before these were
 components hold the factory's keywords alone (no ``_target_``); a stage reads them with a
 ``legacy`` translation.
+
+Checkpoints and run folders written before the layout of 2026-11-23 (encodings, fields and
+stages in subpackages of :mod:`nrt.modules`) name their classes by the old module paths;
+:data:`MOVED_MODULES` maps those to today's, and :func:`current_target` applies it where a
+recorded ``_target_`` is read (here, and ``nrt-eval`` for a run's model).
 """
 
 from __future__ import annotations
@@ -25,6 +30,34 @@ from collections.abc import Callable
 from hydra.utils import instantiate
 
 from nrt.errors import ConfigError
+
+MOVED_MODULES: dict[str, str] = {
+    f"nrt.modules.{name}": f"nrt.modules.{home}.{name}"
+    for home, names in (("encodings", ("hash_grid", "siren", "activations")),
+                        ("fields", ("ea_field", "light_field", "sh_light_field", "medium",
+                                    "voxel_medium", "protocols", "coarse_to_fine",
+                                    "latent_grid")),
+                        ("stages", ("stage", "ea", "generative_ea", "rte", "rte_split", "dpt",
+                                    "schedules", "components", "generative_rte")))
+    for name in names}
+"""Old module path -> today's, for ``_target_`` strings recorded before the layout."""
+
+
+def current_target(target: str) -> str:
+    """A recorded ``_target_`` (``module.Class``) with a pre-layout module path replaced by
+    today's (:data:`MOVED_MODULES`); others unchanged."""
+    module, _, name = target.rpartition(".")
+    return f"{MOVED_MODULES.get(module, module)}.{name}"
+
+
+def current_targets(config):
+    """``config`` (nested dicts and lists) with every ``_target_`` made current."""
+    if isinstance(config, dict):
+        return {k: current_target(v) if k == "_target_" and isinstance(v, str)
+                else current_targets(v) for k, v in config.items()}
+    if isinstance(config, list):
+        return [current_targets(v) for v in config]
+    return config
 
 
 def factory_config(factory: functools.partial) -> dict:
@@ -45,7 +78,7 @@ def as_factory(component, group: str,
     config group in errors (``light_field``)."""
     if isinstance(component, dict):
         config = component if "_target_" in component or legacy is None else legacy(component)
-        component = instantiate(config, _convert_="all")
+        component = instantiate(current_targets(config), _convert_="all")
     if isinstance(component, functools.partial):
         return component
     raise ConfigError(

@@ -3,17 +3,17 @@
 ``sigma_t = rho exp(t)`` per channel (one when grey) and ``albedo = sigmoid(b)``
 (``parametrization=extinction``, stage 2's default; ``scattering``: ``sigma_a = rho
 exp(a)``, ``sigma_s = rho exp(s)``), ``g`` one shared value (``phase=hg``) or ``G_MAX
-tanh(h)`` per voxel (``varying_hg``), as in :class:`~nrt.modules.medium.NeuralMedium`,
+tanh(h)`` per voxel (``varying_hg``), as in :class:`~nrt.modules.fields.medium.NeuralMedium`,
 whose heads this class shares. ``rho`` is the frozen EA density baked once onto ``R``^3
 cells (:meth:`set_density`); the modulation (exponents and logits) lives on a coarser
 grid that doubles during training (``resolutions`` at the run's fractions ``upsample_at``,
-:meth:`VoxelMedium.follow_schedule`; :mod:`nrt.modules.coarse_to_fine`, as the
+:meth:`VoxelMedium.follow_schedule`; :mod:`nrt.modules.fields.coarse_to_fine`, as the
 path-tracing baseline does).
 
 It is the split stage's medium (``conf/model/medium/voxel.yaml``; the protocol:
-:class:`~nrt.modules.protocols.VoxelisedMedium`). :class:`LatentVoxelMedium` is its
+:class:`~nrt.modules.fields.protocols.VoxelisedMedium`). :class:`LatentVoxelMedium` is its
 generative version: one baked density per family member, the modulation decoded from a
-latent code (:class:`~nrt.modules.latent_grid.LatentGridDecoder`).
+latent code (:class:`~nrt.modules.fields.latent_grid.LatentGridDecoder`).
 
 Transport queries the medium many times per step (shadow rays, marches), so the properties
 are composed once on the ``R``^3 cells (:meth:`voxels`, differentiable) and then read by a
@@ -28,16 +28,16 @@ from functools import partial
 
 import torch
 
-from nrt.modules.coarse_to_fine import check_schedule, resample_parameter, resolution_at
-from nrt.modules.latent_grid import LatentGridDecoder
-from nrt.modules.medium import GridModulation, MediumProperties, NeuralMedium
+from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.fields.latent_grid import LatentGridDecoder
+from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
 from nrt.physics.volume import cell_centres, resample_cells, sample_grid
 
 
 class Voxels:
     """Properties composed on cells: ``stacked`` (R, R, R, C + 3 [+ 1]) holds sigma_t (C = 3,
     or 1 when grey), the RGB albedo and, for a g field, g; ``g_shared`` a scalar or None.
-    Callable like a :class:`~nrt.modules.medium.Medium` (``voxels(x)`` ->
+    Callable like a :class:`~nrt.modules.fields.medium.Medium` (``voxels(x)`` ->
     :class:`MediumProperties`); :meth:`sigma_t` reads only the extinction."""
 
     def __init__(self, stacked: torch.Tensor, channels: int, phase: str,
@@ -82,7 +82,7 @@ class VoxelMedium(NeuralMedium):
     """EA density (baked on ``density_resolution``^3 cells) times a grid modulation of
     ``resolutions[k]``^3 cells from the run's fraction ``upsample_at[k - 1]`` on.
     ``modulation(in_dim, out_dim, resolution=...)`` builds that grid (by default a
-    :class:`~nrt.modules.medium.GridModulation`); its parameter ``values`` is resampled."""
+    :class:`~nrt.modules.fields.medium.GridModulation`); its parameter ``values`` is resampled."""
 
     def __init__(self, effects: dict, resolutions: Sequence[int] = (8,),
                  upsample_at: Sequence[float] = (), density_resolution: int = 64,
@@ -152,7 +152,7 @@ class LatentVoxelMedium(VoxelMedium):
     """The voxel medium of a scene family conditioned on latent codes (generative stage 2):
     a density on ``density_resolution``^3 cells that the stage supplies per member (the EA
     density under the member's code), modulated by the exponents and logits that a
-    :class:`~nrt.modules.latent_grid.LatentGridDecoder` decodes from the shared feature grid
+    :class:`~nrt.modules.fields.latent_grid.LatentGridDecoder` decodes from the shared feature grid
     (coarse to fine, as the plain modulation grid) and the code z (``features`` channels, an
     MLP of ``layers`` hidden layers of width ``hidden``). It holds no density itself."""
 

@@ -1,6 +1,6 @@
 """What the stage-2 formulations need of the light field and the medium that Hydra builds
 for them (``model/light_field=<name>``, ``model/medium=<name>``; see
-:mod:`nrt.modules.components`). Each protocol lists the members a stage, its objectives and
+:mod:`nrt.modules.stages.components`). Each protocol lists the members a stage, its objectives and
 its renderers use; a stage builds its components through :func:`build`, which checks them.
 
 Common to every light field: the buffers ``bbox`` (2, 3), the medium box, and
@@ -66,12 +66,12 @@ class RadianceField(Protocol):
 class VoxelisedMedium(Protocol):
     """The learned medium of the split stage: properties composed on cells once per step,
     a density baked from stage 1, a grid that may change resolution during the run. Built as
-    ``factory(effects)``; a :class:`~nrt.modules.medium.Medium` (``grids``, ``bbox``)."""
+    ``factory(effects)``; a :class:`~nrt.modules.fields.medium.Medium` (``grids``, ``bbox``)."""
 
     bbox: torch.Tensor
 
     def voxels(self):
-        """The properties on cells (:class:`~nrt.modules.voxel_medium.Voxels`),
+        """The properties on cells (:class:`~nrt.modules.fields.voxel_medium.Voxels`),
         differentiable in the parameters."""
 
     def set_density(self, density) -> None:
@@ -108,7 +108,7 @@ class LatentVoxelisedMedium(Protocol):
     """Cells per axis of the densities it modulates."""
 
     def voxels_for(self, density: torch.Tensor, code: torch.Tensor):
-        """The properties on cells (:class:`~nrt.modules.voxel_medium.Voxels`) of a density
+        """The properties on cells (:class:`~nrt.modules.fields.voxel_medium.Voxels`) of a density
         (R, R, R, 1) under ``code`` (d_z,), differentiable in both."""
 
     def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
@@ -117,14 +117,14 @@ class LatentVoxelisedMedium(Protocol):
 
 class ModulatedMedium(Protocol):
     """The learned medium of the paper's formulation: a
-    :class:`~nrt.modules.medium.NeuralMedium`-like field modulating the EA density field.
+    :class:`~nrt.modules.fields.medium.NeuralMedium`-like field modulating the EA density field.
     Built as ``factory(effects, density_field)`` (``density_field`` None with ``init=none``)."""
 
     bbox: torch.Tensor
     density_field: torch.nn.Module | None
 
     def __call__(self, x: torch.Tensor):
-        """:class:`~nrt.modules.medium.MediumProperties` at points (..., 3)."""
+        """:class:`~nrt.modules.fields.medium.MediumProperties` at points (..., 3)."""
 
     def grids(self, resolution: int) -> dict[str, torch.Tensor]:
         """Properties on ``resolution``^3 cells in the ground truth's layout."""
@@ -142,7 +142,7 @@ def build(factory: Callable, protocol: type, group: str, needs: str, *args, **kw
     """``factory(*args, **kwargs)``, refused with a :class:`~nrt.errors.ConfigError` naming
     ``model/<group>`` (plus ``needs``: which options fit) when the factory does not take
     these arguments or what it builds lacks a member of ``protocol``."""
-    where = f"The protocol: {protocol.__name__} in nrt/modules/protocols.py."
+    where = f"The protocol: {protocol.__name__} in nrt/modules/fields/protocols.py."
     try:
         inspect.signature(factory).bind(*args, **kwargs)
     except (TypeError, ValueError) as exc:  # ValueError: a partial's own keywords misfit

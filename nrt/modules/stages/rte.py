@@ -22,28 +22,30 @@ from pathlib import Path
 import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
-from nrt.data.samplers import (
+from nrt.errors import NrtError
+from nrt.losses.boundary import boundary_loss
+from nrt.losses.observation import observation_loss
+from nrt.losses.rte import rte_loss
+from nrt.losses.samplers import (
     DensityPointSampler,
     EnvironmentDirectionSampler,
     boundary_samples,
     collocation_points,
 )
-from nrt.errors import NrtError
-from nrt.losses.boundary import boundary_loss
-from nrt.losses.observation import exit_radiance, observation_loss
-from nrt.losses.rte import DirectSource, rte_loss
-from nrt.losses.vre import transmitted_background, vre_loss, vre_render
+from nrt.losses.vre import vre_loss
 from nrt.metrics import psnr
-from nrt.modules.components import as_factory, factory_config, legacy_config
-from nrt.modules.ea import load_ea_field
-from nrt.modules.medium import GroundTruthMedium, Medium
-from nrt.modules.protocols import ModulatedMedium, RadianceField, build
-from nrt.modules.schedules import scheduled
-from nrt.modules.stage import Stage, check_learning_rates
-from nrt.modules.tensorboard import log_image
+from nrt.modules.fields.medium import GroundTruthMedium, Medium
+from nrt.modules.fields.protocols import ModulatedMedium, RadianceField, build
+from nrt.modules.renderers.exit import exit_radiance
+from nrt.modules.renderers.volume import DirectSource, transmitted_background, vre_render
+from nrt.modules.stages.components import as_factory, factory_config, legacy_config
+from nrt.modules.stages.ea import load_ea_field
+from nrt.modules.stages.schedules import scheduled
+from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap, texel_directions
 from nrt.physics.tonemap import luminance
+from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +68,7 @@ class RadiativeTransferStage(Stage):
     that the metric callbacks score and the ``medium_grids.npz`` export. A subclass builds
     ``self.light`` (with ``bbox`` and ``radiance_scale`` buffers) and, when
     :attr:`learns_medium`, ``self.medium``, from the factories its config groups give
-    (``model/light_field``, ``model/medium``; :mod:`nrt.modules.components`), and implements
+    (``model/light_field``, ``model/medium``; :mod:`nrt.modules.stages.components`), and implements
     training and :meth:`predict_pixels`."""
 
     def __init__(self, effects: dict, density: dict, sun: dict | None,
@@ -250,11 +252,11 @@ def legacy_medium(keywords: dict) -> dict:
     rest = {k: v for k, v in keywords.items()
             if k not in ("modulation", "siren", "grid_resolution")}
     if keywords.get("modulation", "siren") == "grid":
-        modulation = {"_target_": "nrt.modules.medium.GridModulation",
+        modulation = {"_target_": "nrt.modules.fields.medium.GridModulation",
                       "resolution": keywords.get("grid_resolution", 32)}
     else:
-        modulation = {"_target_": "nrt.modules.siren.Siren", **keywords.get("siren", {})}
-    return {"_target_": "nrt.modules.medium.NeuralMedium", "_partial_": True,
+        modulation = {"_target_": "nrt.modules.encodings.siren.Siren", **keywords.get("siren", {})}
+    return {"_target_": "nrt.modules.fields.medium.NeuralMedium", "_partial_": True,
             "modulation": {**modulation, "_partial_": True}, **rest}
 
 
@@ -270,7 +272,7 @@ class RTEModule(RadiativeTransferStage):
                  property_resolution: int | None = None):
         super().__init__(effects, density, sun, property_resolution)
         make_light = as_factory(light_field, "light_field",
-                                legacy_config("nrt.modules.light_field.LightField"))
+                                legacy_config("nrt.modules.fields.light_field.LightField"))
         make_medium = as_factory(medium, "medium", legacy_medium)
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field, medium = factory_config(make_light), factory_config(make_medium)

@@ -42,16 +42,16 @@ from torch import nn
 from nrt.cameras import fov_x_deg
 from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
 from nrt.errors import NrtError
-from nrt.modules.coarse_to_fine import (
+from nrt.modules.fields.coarse_to_fine import (
     check_schedule,
     decaying_lr,
     resample_parameter,
     resolution_at,
 )
-from nrt.modules.stage import Stage, check_learning_rates
-from nrt.modules.tensorboard import log_image
+from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres, resample_cells
+from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ class DPTModule(Stage):
     def _ea_density(self, res: int) -> torch.Tensor:
         """The EA density (clamped like sigma_t) at the cell centres of res^3 cells,
         (R, R, R, 1) on the parameters' device."""
-        from nrt.modules.ea import load_ea_field
+        from nrt.modules.stages.ea import load_ea_field
 
         if "field" not in self._ea:
             self._ea["field"] = load_ea_field(self.hparams.density["ea_ckpt"])
@@ -209,7 +209,7 @@ class DPTModule(Stage):
     @torch.no_grad()
     def _resize(self, res: int) -> None:
         """Trilinear, cell-centred resampling of every grid to res^3, Adam's state for them
-        restarted (:mod:`nrt.modules.coarse_to_fine`; moments resampled with the grid left
+        restarted (:mod:`nrt.modules.fields.coarse_to_fine`; moments resampled with the grid left
         the steps 8x too small after a doubling). With ``ea_detail`` sigma_t also gets back
         the EA density's detail that the coarse grid could not hold (EA at res^3 minus EA at
         the old resolution, upsampled): a doubling without optimisation in between yields

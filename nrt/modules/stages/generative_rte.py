@@ -1,7 +1,7 @@
 """Stage 2 in generative mode (``nrt-train stage=rte mode=generative scene=family
 init.ea_ckpt=<generative EA run>``): the split formulation of
-:mod:`nrt.modules.rte_split` over the K members of a scene family, conditioned on one
-latent code per member (the auto-decoder of :mod:`nrt.modules.generative_ea`, continued).
+:mod:`nrt.modules.stages.rte_split` over the K members of a scene family, conditioned on one
+latent code per member (the auto-decoder of :mod:`nrt.modules.stages.generative_ea`, continued).
 
 - **Codes.** ``codes`` (K, d_z) start from the generative EA run's and stay optimisable
   (their own Adam group, ``latent_lr``, under the L2 prior ``latent_prior_weight * mean_k
@@ -9,13 +9,13 @@ latent code per member (the auto-decoder of :mod:`nrt.modules.generative_ea`, co
   field's warm-up) Adam would scale its tiny gradient up to steps of ``latent_lr`` and pull
   every code to the origin, erasing the members' differences (measured: 100 such steps
   made the four tiny members' media alike).
-- **Medium** (:class:`~nrt.modules.voxel_medium.LatentVoxelMedium`): member k's density is
+- **Medium** (:class:`~nrt.modules.fields.voxel_medium.LatentVoxelMedium`): member k's density is
   the frozen EA field evaluated under z_k on the voxels (the field's hash features at the
   cell centres are computed once; its modulation by z and its density MLP run every step,
   so the density follows the code, with gradient); its modulation (sigma_t exponents and
   albedo logits, ``parametrization=extinction``) is an MLP of shared grid features of x
   (coarse to fine) concatenated with z_k.
-- **Light** (:class:`~nrt.modules.sh_light_field.LatentSHGridLightField`): the scattered
+- **Light** (:class:`~nrt.modules.fields.sh_light_field.LatentSHGridLightField`): the scattered
   light's SH coefficients are an MLP of shared grid features of x concatenated with z_k;
   each member keeps its own cache of the uncollided light, all under the family's one
   training sky (shared suns and sun-less sky).
@@ -45,13 +45,13 @@ from torch import nn
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import ConfigError, DatasetError
-from nrt.modules.components import as_factory, factory_config
-from nrt.modules.ea_field import EAField
-from nrt.modules.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
-from nrt.modules.medium import property_grids
-from nrt.modules.protocols import LatentScatteredLightField, LatentVoxelisedMedium
-from nrt.modules.rte_split import RAY_KEYS, SplitRTEModule, detached
-from nrt.modules.stage import check_learning_rates
+from nrt.modules.fields.ea_field import EAField
+from nrt.modules.fields.medium import property_grids
+from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
+from nrt.modules.stages.components import as_factory, factory_config
+from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
+from nrt.modules.stages.rte_split import RAY_KEYS, SplitRTEModule, detached
+from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.volume import cell_centres
 
 log = logging.getLogger(__name__)
@@ -77,7 +77,7 @@ class GenerativeRTEModule(SplitRTEModule):
     ``latent_dim`` (d_z) values. ``ea_field`` (the EA field's config) and ``member_info``
     (``name``, ``seed`` of each member) come from the EA checkpoint (``density.ea_ckpt``)
     when the run starts, and from the stage's own checkpoint when it is loaded; the rest of
-    the arguments are :class:`~nrt.modules.rte_split.SplitRTEModule`'s."""
+    the arguments are :class:`~nrt.modules.stages.rte_split.SplitRTEModule`'s."""
 
     LIGHT_PROTOCOL = LatentScatteredLightField
     MEDIUM_PROTOCOL = LatentVoxelisedMedium
@@ -233,7 +233,7 @@ class GenerativeRTEModule(SplitRTEModule):
     def property_grids_for(self, code: torch.Tensor, resolution: int
                            ) -> dict[str, torch.Tensor]:
         """The medium decoded from any code (d_z,) on ``resolution``^3 cells, in the layout
-        of :meth:`~nrt.modules.stage.Stage.property_grids`, on the CPU: the EA density under
+        of :meth:`~nrt.modules.stages.stage.Stage.property_grids`, on the CPU: the EA density under
         the code on the medium's cells, modulated under the code, as in training."""
         code = code.to(self.codes)
         voxels = self.medium.voxels_for(self.density_for(code), code).detached()

@@ -1,6 +1,6 @@
 """A grid decoder conditioned on a latent code: ``(x, z) -> MLP([f(x), z])``.
 
-The generative stage 2 (:mod:`nrt.modules.generative_rte`) conditions its medium and its
+The generative stage 2 (:mod:`nrt.modules.stages.generative_rte`) conditions its medium and its
 light field on a member's latent code z by concatenation (the DeepSDF manner): ``f(x)`` are
 ``features`` channels trilinear on a cell-centred grid over [-1, 1]^3, shared by all codes,
 and a small MLP maps ``[f(x), z]`` to the outputs (the medium's exponents and logits, or the
@@ -10,7 +10,7 @@ the plain component's start (zero modulation, zero scattered light).
 The stages read the decoder on cells (:meth:`LatentGridDecoder.on_cells`: the outputs at
 the cell centres of an R^3 grid, then trilinear between them, as the single-scene voxel
 grids are read). The feature grid is the parameter ``values``, so the coarse-to-fine
-schedule of :mod:`nrt.modules.coarse_to_fine` resamples it as it resamples a plain grid.
+schedule of :mod:`nrt.modules.fields.coarse_to_fine` resamples it as it resamples a plain grid.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError
-from nrt.modules.ea_field import mlp
+from nrt.modules.fields.ea_field import mlp
 from nrt.physics.volume import resample_cells, sample_grid
 
 
@@ -27,7 +27,7 @@ class LatentGridDecoder(nn.Module):
     """``out_dim`` values at unit-box points (..., 3) under a code (..., ``latent_dim``) from
     ``features`` grid channels on ``resolution``^3 cells and an MLP of ``layers`` hidden ReLU
     layers of width ``hidden``. ``in_dim`` must be 3 (the medium's modulation factory
-    signature, :class:`~nrt.modules.medium.NeuralMedium`)."""
+    signature, :class:`~nrt.modules.fields.medium.NeuralMedium`)."""
 
     def __init__(self, in_dim: int, out_dim: int, latent_dim: int, resolution: int = 8,
                  features: int = 16, hidden: int = 64, layers: int = 1,

@@ -1,6 +1,6 @@
 """Stage 1: the emission-absorption LightningModule (``nrt-train stage=ea``).
 
-Renders camera rays through an :class:`~nrt.modules.ea_field.EAField` inside the medium
+Renders camera rays through an :class:`~nrt.modules.fields.ea_field.EAField` inside the medium
 box with stratified jittered samples, alpha-composites them in front of the known
 background ``E(v)`` and fits the photos (MSE after the log tonemap: HDR pixels would
 otherwise let the sun's glints dominate). Validation renders held-out views and
@@ -16,12 +16,12 @@ import torch
 
 from nrt.errors import ConfigError, NrtError
 from nrt.metrics import density_agreement, psnr
-from nrt.modules.ea_field import EAField
-from nrt.modules.stage import Stage, check_learning_rates
-from nrt.modules.tensorboard import log_image
-from nrt.physics.compositing import alpha_composite, stratified_samples
+from nrt.modules.fields.ea_field import EAField
+from nrt.modules.renderers.emission_absorption import render_rays
+from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.tonemap import log_tonemap, luminance
-from nrt.physics.volume import cell_centres, ray_box_intersect
+from nrt.physics.volume import cell_centres
+from nrt.tensorboard import log_image
 
 DENSITY_GRID_FILE = "density_grid.npz"
 
@@ -29,28 +29,6 @@ PHOTOMETRIC_LOSSES = {
     "log_mse": lambda pred, ref: torch.mean((log_tonemap(pred) - log_tonemap(ref)) ** 2),
     "mse": lambda pred, ref: torch.mean((pred - ref) ** 2),
 }
-
-
-def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
-                background: torch.Tensor, n_samples: int, jitter: bool,
-                chunk: int | None = None, latent: torch.Tensor | None = None) -> torch.Tensor:
-    """EA radiance ``L(o, -v)`` (R, 3) of view rays; rays missing the box see ``E(v)``.
-    ``latent`` (R, d_z): each ray's code, for a conditioned field (``mode=generative``)."""
-    if chunk and origins.shape[0] > chunk:
-        return torch.cat([render_rays(field, origins[i:i + chunk], dirs[i:i + chunk],
-                                      background[i:i + chunk], n_samples, jitter,
-                                      latent=None if latent is None else latent[i:i + chunk])
-                          for i in range(0, origins.shape[0], chunk)])
-    t0, t1, hit = ray_box_intersect(origins, dirs, field.bbox)
-    out = background.clone()
-    if hit.any():
-        o, d = origins[hit], dirs[hit]
-        t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
-        pts = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
-        z = None if latent is None else latent[hit].unsqueeze(1)  # one code per ray
-        sigma, rgb = field(pts, d.unsqueeze(1).expand_as(pts), z)
-        out[hit], _ = alpha_composite(sigma, delta, rgb, background[hit])
-    return out
 
 
 class EAModule(Stage):

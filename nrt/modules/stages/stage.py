@@ -36,7 +36,7 @@ import lightning as L
 import torch
 
 from nrt.errors import ConfigError
-from nrt.modules.schedules import training_progress
+from nrt.modules.stages.schedules import training_progress
 
 
 def check_learning_rates(lr: float | dict[str, float], key: str) -> None:
@@ -93,7 +93,7 @@ class Stage(L.LightningModule):
         return dm.ground_truth if dm is not None else None
 
     def progress(self) -> float:
-        """How far the run is, in [0, 1] (:func:`~nrt.modules.schedules.training_progress`);
+        """How far the run is, in [0, 1] (:func:`~nrt.modules.stages.schedules.training_progress`);
         0 outside a trainer."""
         return training_progress(self.trainer) if self._trainer is not None else 0.0
 

@@ -8,8 +8,8 @@ scattered at least once, and only the second is learned:
   suns' and emitters' by shadow rays (:mod:`~nrt.physics.direct_light`): exact up to
   Monte Carlo noise, and differentiated with respect to the medium;
 - scattered: a light field chosen by ``model/light_field`` (the protocol
-  :class:`~nrt.modules.protocols.ScatteredLightField`), by default
-  :class:`~nrt.modules.sh_light_field.SHGridLightField`, SH coefficients on a grid, zero on
+  :class:`~nrt.modules.fields.protocols.ScatteredLightField`), by default
+  :class:`~nrt.modules.fields.sh_light_field.SHGridLightField`, SH coefficients on a grid, zero on
   inflow and smooth in direction, whose in-scattering is exact for HG.
 
 Two objectives (``losses.weights``):
@@ -22,8 +22,8 @@ Two objectives (``losses.weights``):
   (:mod:`~nrt.losses.transport`); it trains the light field only.
 
 The medium is chosen by ``model/medium`` (the protocol
-:class:`~nrt.modules.protocols.VoxelisedMedium`), by default
-:class:`~nrt.modules.voxel_medium.VoxelMedium`: the frozen EA density baked on a grid,
+:class:`~nrt.modules.fields.protocols.VoxelisedMedium`), by default
+:class:`~nrt.modules.fields.voxel_medium.VoxelMedium`: the frozen EA density baked on a grid,
 modulated by a grid that doubles during the run. The SH projection of the uncollided light
 at the light field's cache points is refreshed from the current medium every
 ``samples.uncollided_every`` steps. The photo objective starts after ``light_warmup`` of
@@ -41,17 +41,17 @@ from collections.abc import Callable
 
 import torch
 
-from nrt.losses.observation import exit_radiance
 from nrt.losses.photo import check_tonemap, photo_loss
 from nrt.losses.transport import transport_loss
-from nrt.losses.vre import render_view_rays, transmitted_background
-from nrt.modules.coarse_to_fine import decaying_lr
-from nrt.modules.components import as_factory, factory_config, legacy_config
-from nrt.modules.ea import load_ea_field
-from nrt.modules.protocols import ScatteredLightField, VoxelisedMedium, build
-from nrt.modules.rte import RadiativeTransferStage
-from nrt.modules.stage import check_learning_rates
-from nrt.modules.voxel_medium import Voxels
+from nrt.modules.fields.coarse_to_fine import decaying_lr
+from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
+from nrt.modules.fields.voxel_medium import Voxels
+from nrt.modules.renderers.exit import exit_radiance
+from nrt.modules.renderers.volume import render_view_rays, transmitted_background
+from nrt.modules.stages.components import as_factory, factory_config, legacy_config
+from nrt.modules.stages.ea import load_ea_field
+from nrt.modules.stages.rte import RadiativeTransferStage
+from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.phase import sample_uniform_sphere
 from nrt.physics.sky_light import sky_inscatter, uncollided_sh
@@ -82,7 +82,7 @@ class SplitRTEModule(RadiativeTransferStage):
     """A scattered-light field and a voxelised medium (by default the SH grid and the voxel
     medium) on the photo and transport objectives. The objectives and renderings take the
     medium and the light as arguments, so the generative stage
-    (:mod:`nrt.modules.generative_rte`) runs them per family member."""
+    (:mod:`nrt.modules.stages.generative_rte`) runs them per family member."""
 
     LIGHT_PROTOCOL: type = ScatteredLightField
     MEDIUM_PROTOCOL: type = VoxelisedMedium
@@ -96,9 +96,9 @@ class SplitRTEModule(RadiativeTransferStage):
                  property_resolution: int | None = None):
         super().__init__(effects, density, sun, property_resolution)
         make_light = as_factory(light_field, "light_field",
-                                legacy_config("nrt.modules.sh_light_field.SHGridLightField"))
+                                legacy_config("nrt.modules.fields.sh_light_field.SHGridLightField"))
         make_medium = as_factory(medium, "medium",
-                                 legacy_config("nrt.modules.voxel_medium.VoxelMedium"))
+                                 legacy_config("nrt.modules.fields.voxel_medium.VoxelMedium"))
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
@@ -269,5 +269,6 @@ class SplitRTEModule(RadiativeTransferStage):
     # ------------------------------------------------------------------ resume
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         """The baked density comes with the state (no EA field needed); the medium resizes
-        its grid to the checkpoint's itself (:class:`~nrt.modules.voxel_medium.VoxelMedium`)."""
+        its grid to the checkpoint's itself
+        (:class:`~nrt.modules.fields.voxel_medium.VoxelMedium`)."""
         self._baked = True

@@ -4,7 +4,7 @@ auto-decoder in the DeepSDF manner (Park et al. 2019) over the K members of a sc
 Member k has an optimisable latent code ``z_k`` (d_z values, drawn from
 ``N(0, latent_init_std^2)`` at the start) under an L2 prior: the loss is the photometric
 loss plus ``latent_prior_weight * mean_k |z_k|^2``. The EA field is conditioned on z
-(:class:`~nrt.modules.ea_field.EAField` with ``latent_dim = d_z``: its hash-grid features
+(:class:`~nrt.modules.fields.ea_field.EAField` with ``latent_dim = d_z``: its hash-grid features
 multiplied by ``1 + M(z)``), and each ray is rendered with its member's code, so a batch
 that mixes members trains the shared field and every code in it. The codes are the
 module's parameter ``codes`` (K, d_z), so checkpoints hold them and a resumed run
@@ -29,11 +29,11 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError, DatasetError, NrtError
-from nrt.modules.ea import DENSITY_GRID_FILE, EAModule, check_checkpoint_file
-from nrt.modules.ea_field import EAField
-from nrt.modules.stage import check_learning_rates
-from nrt.modules.tensorboard import log_image
+from nrt.modules.fields.ea_field import EAField
+from nrt.modules.stages.ea import DENSITY_GRID_FILE, EAModule, check_checkpoint_file
+from nrt.modules.stages.stage import check_learning_rates
 from nrt.run_dirs import read_run_info
+from nrt.tensorboard import log_image
 
 LATENTS_FILE = "latents.npz"
 MEMBERS_DIR = "members"

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from nrt.modules.siren import Siren
+from nrt.modules.encodings.siren import Siren
 
 LOG_RADIANCE_MAX = 30.0
 """Largest ``y``: radiance up to ``e^30 ~ 1e13`` times the scale, never ``inf``."""

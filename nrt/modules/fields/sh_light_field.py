@@ -17,7 +17,7 @@ in-scattering of *all* light, ``sum g^l (u_lm + c_lm) Y_lm(w)``, costs two grid 
 which makes the transport target (:mod:`nrt.losses.transport`) cheap to march.
 
 It is the split stage's default light field (``conf/model/light_field/sh_grid.yaml``; the
-protocol: :class:`~nrt.modules.protocols.ScatteredLightField`). The lookups live in
+protocol: :class:`~nrt.modules.fields.protocols.ScatteredLightField`). The lookups live in
 :class:`SHGrid`, the coefficients of one scene as plain tensors, which the field reads its
 own parameters through; :class:`LatentSHGridLightField` (generative stage 2) decodes one such
 grid per latent code.
@@ -29,7 +29,7 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError
-from nrt.modules.latent_grid import LatentGridDecoder
+from nrt.modules.fields.latent_grid import LatentGridDecoder
 from nrt.physics.sh import num_coefficients, phase_band_factors, sh_basis
 from nrt.physics.volume import cell_centres, sample_grid
 
@@ -134,7 +134,7 @@ class SHGridLightField(nn.Module):
 class LatentSHGridLightField(nn.Module):
     """The scattered light of ``members`` scenes conditioned on latent codes (generative stage
     2): the SH coefficients on ``resolution``^3 cells are decoded from shared grid features
-    of x concatenated with a code z (:class:`~nrt.modules.latent_grid.LatentGridDecoder`:
+    of x concatenated with a code z (:class:`~nrt.modules.fields.latent_grid.LatentGridDecoder`:
     ``features`` channels, an MLP of ``layers`` hidden layers of width ``hidden``, zero at
     the start as the plain field is), and each member keeps its own uncollided cache.
     :meth:`member` gives one member's light as an :class:`SHGrid`."""

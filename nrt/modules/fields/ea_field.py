@@ -18,8 +18,8 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError
-from nrt.modules.activations import DENSITY_ACTIVATIONS
-from nrt.modules.hash_grid import HashGrid
+from nrt.modules.encodings.activations import DENSITY_ACTIVATIONS
+from nrt.modules.encodings.hash_grid import HashGrid
 
 
 def mlp(n_in: int, hidden: int, n_out: int, layers: int) -> nn.Sequential:
