@@ -143,7 +143,8 @@ def open_generative_run(path: str | Path) -> GenerativeRun:
                        f"run: `nrt-train stage=rte mode=generative scene=family {ea_hint}`, "
                        "then nrt-sample run=<that run>.")
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
-    return GenerativeRun(path, Path(info["family_dir"]), effects, str(cfg.model._target_))
+    return GenerativeRun(path, Path(info["family_dir"]), effects,
+                         current_target(str(cfg.model._target_)))
 
 
 def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> Stage:
