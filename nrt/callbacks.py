@@ -157,6 +157,11 @@ class PropertyMetrics(L.Callback):
     isotropic scene or a fixed g), ``val/mse_g_x100`` (weighted by the true sigma_s), at
     step 0 (the starting point of accuracy-versus-time curves), after each validation and
     when training ends; with ``slices``, the middle z-slices learned | true to TensorBoard.
+
+    On a scene family, for a stage with a medium per member
+    (:meth:`~nrt.modules.stages.stage.Stage.member_property_grids`): each member's MSEs against its
+    own ground truth, ``val/mse_<property>_x100_member<k>``, and their mean
+    ``val/mse_<property>_x100`` (slices of member 0).
     """
 
     def __init__(self, slices: bool = True):
@@ -166,18 +171,41 @@ class PropertyMetrics(L.Callback):
     def measure(self, trainer, pl_module: Stage) -> dict[str, float]:
         gt = pl_module.ground_truth()
         if gt is None:
-            return {}
-        learned = pl_module.property_grids(gt["g"].shape[0])
+            return self.measure_members(trainer, pl_module)
+        return self.score(pl_module, pl_module.property_grids(gt["g"].shape[0]), gt,
+                          self.slices)
+
+    def score(self, pl_module: Stage, learned: dict | None, gt: dict,
+              slices: bool) -> dict[str, float]:
+        """``val/mse_<property>_x100`` of ``learned`` grids against ``gt`` ({} without
+        grids)."""
         if learned is None:
             return {}
         from nrt.metrics import property_mse
 
         truth = {k: v.to(learned["sigma_a"].device) for k, v in gt.items()}
         with_g = pl_module.learns_g
-        if self.slices:
+        if slices:
             self._log_slices(pl_module, learned, truth, with_g)
         return {f"val/mse_{k}_x100": float(v)
                 for k, v in property_mse(learned, truth, with_g).items()}
+
+    def measure_members(self, trainer, pl_module: Stage) -> dict[str, float]:
+        """Per-member scores and their means on a family (members without ground truth
+        are left out); {} for anything else."""
+        truths = getattr(trainer.datamodule, "member_ground_truths", None) or []
+        per_member: dict[str, list[float]] = {}
+        out = {}
+        for k, gt in enumerate(truths):
+            if gt is None:
+                continue
+            learned = pl_module.member_property_grids(k, gt["g"].shape[0])
+            for key, value in self.score(pl_module, learned, gt,
+                                         self.slices and not per_member).items():
+                out[f"{key}_member{k}"] = value
+                per_member.setdefault(key, []).append(value)
+        out.update({key: sum(v) / len(v) for key, v in per_member.items()})
+        return out
 
     @staticmethod
     def _log_slices(pl_module, learned: dict, truth: dict, with_g: bool) -> None:

@@ -174,11 +174,11 @@ def write_run_info(run_dir: str | Path, **info) -> None:
                                                      indent=1))
 
 
-def eval_dir(run, output_dir: str) -> str:
-    """Resolver ``${nrt_eval_dir:run,output_dir}``: ``<run>/eval/<timestamp>-<pid>`` for a
-    run folder, else ``<output_dir>/eval/<timestamp>-<pid>`` (also for a run folder that
-    does not exist, which nrt-eval then reports without creating it); never an existing
-    folder."""
+def eval_dir(run, output_dir: str, kind: str = "eval") -> str:
+    """Resolver ``${nrt_eval_dir:run,output_dir[,kind]}``: ``<run>/<kind>/<timestamp>-<pid>``
+    for a run folder, else ``<output_dir>/<kind>/<timestamp>-<pid>`` (also for a run folder
+    that does not exist, which the command then reports without creating it); never an
+    existing folder. ``kind`` is ``eval`` (nrt-eval) or ``sample`` (nrt-sample)."""
     given = run not in (None, "", "None") and Path(str(run)).expanduser().is_dir()
-    base = Path(str(run)).expanduser() / "eval" if given else Path(output_dir) / "eval"
-    return _chosen.setdefault(("eval", str(base)), new_run_dir(base))
+    base = (Path(str(run)).expanduser() if given else Path(output_dir)) / str(kind)
+    return _chosen.setdefault((str(kind), str(base)), new_run_dir(base))

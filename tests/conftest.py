@@ -66,6 +66,27 @@ def tiny_dataset(tiny_output_dir) -> Path:
     return folder
 
 
+GENERATIVE_FAMILY = ("preset=tiny", "scene=family", "mode=generative")
+SMALL_FAMILY = ("scene.cameras.num_train=8", "scene.cameras.num_test=2",
+                "scene.cameras.width=24", "scene.cameras.height=24", "scene.spp=16")
+"""The family the generative tests render (K = 4 members of 10 views of 24 x 24 pixels under
+each of the two skies): a third of the tiny preset's pixels, enough to tell the members
+apart."""
+
+
+@pytest.fixture(scope="session")
+def family_dir(tmp_path_factory) -> Path:
+    """The test family (:data:`SMALL_FAMILY`), rendered once per session: its folder
+    (``family.json``); ``paths.output_dir`` is its grandparent. Read-only."""
+    out = tmp_path_factory.mktemp("generative")
+    cfg = compose_config("train", [*GENERATIVE_FAMILY, *SMALL_FAMILY,
+                                   f"paths.output_dir={out}"])
+    from nrt.data.family import ensure_family
+
+    return ensure_family(OmegaConf.to_container(cfg.scene, resolve=True), cfg.paths.data_dir,
+                         progress=False)
+
+
 NRT_TRAIN = [sys.executable, "-m", "nrt.cli.train"]
 
 
@@ -83,6 +104,27 @@ def run_train(out: Path, data_root: Path, *overrides: str, stage: str = "ea"
               ) -> subprocess.CompletedProcess:
     cmd, env = train_command(out, data_root, *overrides, stage=stage)
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def refusal(returncode: int, stderr: str) -> str:
+    """The one ``nrt: error:`` line of a command that refused its input as a user error:
+    status 2, one such line, no traceback."""
+    assert returncode == 2, stderr[-2000:]
+    errors = [line for line in stderr.splitlines() if line.startswith("nrt: error:")]
+    assert len(errors) == 1 and "Traceback" not in stderr, stderr
+    return errors[0]
+
+
+def resume_in_place(out: Path, data_root: Path, run: Path, *overrides: str,
+                    stage: str = "ea") -> dict:
+    """``nrt-train ... resume=true`` (:func:`run_train`): it must succeed and continue
+    ``run`` in place (no other run folder); returns the run's last checkpoint, loaded."""
+    import torch
+
+    proc = run_train(out, data_root, *overrides, "resume=true", stage=stage)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert sorted(run.parent.iterdir()) == [run]
+    return torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
 
 
 def read_csv_metrics(run_dir: Path) -> list[dict]:

@@ -77,6 +77,12 @@ def check_budget(cfg: DictConfig) -> None:
                        "training (or null for no time limit).")
 
 
+GENERATIVE_STAGES = ("ea", "rte")
+"""The stages built in ``mode=generative`` (``conf/mode_stage/generative_<stage>.yaml``)."""
+
+SPLIT_OBJECTIVES = ("photo", "transport")
+"""The objectives of generative stage 2 (:mod:`nrt.modules.stages.rte_split`)."""
+
 LATENT_COUNTS = {"dim": "d_z, the size of a latent code",
                  "modulation_hidden": "the width of the modulation MLP M(z)"}
 """Counts of ``mode.latent`` (each at least 1) and what they count."""
@@ -84,7 +90,7 @@ LATENT_COUNTS = {"dim": "d_z, the size of a latent code",
 
 def check_mode(cfg: DictConfig) -> None:
     """Refuse a mode that does not fit the scene or stage, and latent settings no run can
-    use, before anything is built or loaded: ``mode=generative`` trains stage 1 on a scene
+    use, before anything is built or loaded: ``mode=generative`` trains stages 1 and 2 on a scene
     family (``scene.family``), a family trains only in that mode, and ``mode.latent`` holds
     counts >= 1, a non-negative ``init_std`` and ``prior_weight`` and a positive ``lr``."""
     mode = OmegaConf.select(cfg, "mode.name", default="single")
@@ -105,10 +111,16 @@ def check_mode(cfg: DictConfig) -> None:
                           f"but scene={cfg.scene.name} is one scene (it has no scene.family). "
                           "Add scene=family (README \"Scene families\"), or drop "
                           "mode=generative to train this scene alone.")
-    if cfg.stage.name != "ea":
-        raise ConfigError(f"mode=generative is built for stage=ea only; stage="
-                          f"{cfg.stage.name} in generative mode is not built yet. Run "
-                          "nrt-train stage=ea mode=generative scene=family.")
+    if cfg.stage.name not in GENERATIVE_STAGES:
+        raise ConfigError(f"mode=generative is built for stage=ea and stage=rte; stage="
+                          f"{cfg.stage.name} in generative mode is not built. Run nrt-train "
+                          "stage=ea mode=generative scene=family, then stage=rte.")
+    weights = set(OmegaConf.select(cfg, "losses.weights", default={}) or {})
+    if cfg.stage.name == "rte" and not weights <= set(SPLIT_OBJECTIVES):
+        raise ConfigError(f"stage=rte mode=generative trains the split formulation (objectives "
+                          f"{list(SPLIT_OBJECTIVES)}), but losses.weights names "
+                          f"{sorted(weights)}: the paper's formulation (experiment=rte_paper) "
+                          "is a single-scene formulation. Drop the experiment.")
     environments = OmegaConf.select(cfg, "stage.environments")
     if any(isinstance(e, int) and e != 0 for e in environments or []):
         raise ConfigError(f"stage.environments={list(environments)}: a family trains on its "

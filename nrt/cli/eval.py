@@ -66,15 +66,20 @@ def load_medium(cfg: DictConfig, inputs: dict) -> dict:
             "dataset_dir": dataset_dir, "trained": [], "source": str(path), "stage": "grids"}
 
 
+def rows_table(rows: list[dict]) -> list[str]:
+    """Rows of equal keys as the lines of a Markdown table (floats to 4 digits)."""
+    keys = list(rows[0])
+    return ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)] + [
+        "| " + " | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k])
+                          for k in keys) + " |" for r in rows]
+
+
 def markdown(metrics: dict[str, float], frames: list[dict], title: str) -> str:
     """The metrics as Markdown tables: all values, then one row per re-rendered frame."""
     lines = [f"# {title}", "", "| metric | value |", "|---|---:|"]
     lines += [f"| {k} | {v:.6g} |" for k, v in sorted(metrics.items())]
     if frames:
-        keys = list(frames[0])
-        lines += ["", "| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-        lines += ["| " + " | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k])
-                                    for k in keys) + " |" for r in frames]
+        lines += ["", *rows_table(frames)]
     return "\n".join(lines) + "\n"
 
 

@@ -244,6 +244,22 @@ class FamilyRayDataModule(RayDataModule):
         self.val_data, self.val_members = splits["test"]
 
     @property
+    def environment(self) -> EnvironmentMap:
+        """The family's shared training environment (stage 2 learns its light field). Every
+        member holds its own copy; they must agree."""
+        self.setup()
+        maps = [self.train_data.envmaps[i] for i in self.train_data.env_index.unique().tolist()]
+        first = maps[0]
+        for envmap in maps[1:]:
+            if envmap.radiance.shape != first.radiance.shape or \
+                    not torch.allclose(envmap.radiance, first.radiance, rtol=1e-5, atol=0.0):
+                raise DatasetError(f"Family '{self.dataset_dir}': the members' training "
+                                   f"environments '{self.family.train_environment}' differ; "
+                                   "a family shares one training sky. Render the family again "
+                                   "(`nrt-data scene=family`).")
+        return first
+
+    @property
     def num_members(self) -> int:
         """K, the family's size."""
         self.setup()

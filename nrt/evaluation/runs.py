@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
@@ -38,36 +38,44 @@ class TrainedRun:
     model_target: str
 
 
-def open_run(path: str | Path) -> TrainedRun:
-    """Read a run folder of ``nrt-train``; errors name what is missing and the fix."""
+EVAL_HINT = "(or grids=<file.npz> with scene=<name> to evaluate a property-grid file)"
+
+
+def read_run_folder(path: str | Path, hint: str = EVAL_HINT) -> tuple[Path, dict, DictConfig]:
+    """A run folder of ``nrt-train``: its path, ``run.json`` and composed config. Errors
+    name what is missing and the fix; ``hint`` ends them (the command's alternative)."""
     path = Path(path).expanduser()
     if not path.is_dir():
         raise NrtError(f"run='{path}' does not exist (or is not a folder). Pass a run folder "
-                       "of nrt-train such as outputs/<scene>/<stage>/<timestamp>-<pid> (or "
-                       "grids=<file.npz> with scene=<name> to evaluate a property-grid file).")
+                       f"of nrt-train such as outputs/<scene>/<stage>/<timestamp>-<pid> {hint}.")
     info_file, cfg_file = path / RUN_FILE, path / ".hydra" / "config.yaml"
     if not info_file.is_file() or not cfg_file.is_file():
         raise NrtError(f"run='{path}' is not a run folder of nrt-train: it needs {RUN_FILE} "
                        "and .hydra/config.yaml. Pass a folder such as "
-                       "outputs/<scene>/<stage>/<timestamp>-<pid> (or grids=<file.npz> with "
-                       "scene=<name> to evaluate a property-grid file).")
-    info = json.loads(info_file.read_text())
+                       f"outputs/<scene>/<stage>/<timestamp>-<pid> {hint}.")
+    return path, json.loads(info_file.read_text()), OmegaConf.load(cfg_file)
+
+
+def open_run(path: str | Path) -> TrainedRun:
+    """Read a run folder of ``nrt-train``; errors name what is missing and the fix."""
+    path, info, cfg = read_run_folder(path)
     if "family_dir" in info:
         raise NrtError(f"run='{path}' is a generative run over the scene family "
                        f"'{info['family_dir']}' (mode=generative), which nrt-eval does not "
-                       "evaluate yet; its per-member density grids are in "
-                       "members/<name>/density_grid.npz and its codes in latents.npz.")
-    cfg = OmegaConf.load(cfg_file)
+                       "evaluate; nrt-sample run=<it> scores a generative stage-2 run "
+                       "(reconstructions, samples, FID). Its per-member grids are in "
+                       "members/<name>/ and its codes in latents.npz.")
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return TrainedRun(path, info["stage"], info["scene"], Path(info["dataset_dir"]),
                       list(info["environments"]), effects,
                       current_target(str(cfg.model._target_)))
 
 
-def checkpoint_path(run: TrainedRun, checkpoint: str) -> Path:
-    """``last`` | ``best`` | a path -> the checkpoint file."""
-    ckpt = {"last": run.path / LAST_CKPT,
-            "best": run.path / "checkpoints" / "best.ckpt"}.get(checkpoint, Path(checkpoint))
+def checkpoint_path(run: TrainedRun | Path, checkpoint: str) -> Path:
+    """``last`` | ``best`` | a path -> the checkpoint file of ``run`` (or its folder)."""
+    folder = run if isinstance(run, Path) else run.path
+    ckpt = {"last": folder / LAST_CKPT,
+            "best": folder / "checkpoints" / "best.ckpt"}.get(checkpoint, Path(checkpoint))
     if not ckpt.is_file():
         raise NrtError(f"checkpoint={checkpoint}: no checkpoint at '{ckpt}'. Use last, best or "
                        "a path to a .ckpt of this run.")
@@ -100,3 +108,54 @@ def run_grids(run: TrainedRun, resolution: int | None, checkpoint: str = "last"
     if bbox is not None:
         out["bbox"] = bbox.detach().float().cpu()
     return out, f"{ckpt} at {resolution}^3"
+
+
+GENERATIVE_RTE = ("nrt-train stage=rte mode=generative scene=family "
+                  "init.ea_ckpt=<generative EA run>/checkpoints/last.ckpt")
+"""The command that trains what nrt-sample reads (its errors quote it)."""
+
+
+@dataclass
+class GenerativeRun:
+    """A generative stage-2 run folder: its family folder and scene effects."""
+
+    path: Path
+    family_dir: Path
+    effects: dict
+    model_target: str
+
+
+def open_generative_run(path: str | Path) -> GenerativeRun:
+    """Read a run folder of ``nrt-train stage=rte mode=generative``; a single-scene run or
+    a generative run of another stage is refused with the command that trains one."""
+    path, info, cfg = read_run_folder(path, hint=f"trained with `{GENERATIVE_RTE}`")
+    stage = info.get("stage")
+    if info.get("mode") != "generative" or "family_dir" not in info:
+        raise NrtError(f"run='{path}' is a single-scene run (stage {stage}, scene "
+                       f"{info.get('scene')}): nrt-sample needs a generative stage-2 run over "
+                       f"a scene family, trained with `{GENERATIVE_RTE}` after `nrt-train "
+                       "stage=ea mode=generative scene=family`.")
+    if stage != "rte":
+        ea_hint = (f"init.ea_ckpt={path / LAST_CKPT}" if stage == "ea"
+                   else "init.ea_ckpt=<generative EA run>/checkpoints/last.ckpt")
+        raise NrtError(f"run='{path}' is a generative {stage} run: it learned codes and EA "
+                       "densities, no media to sample. nrt-sample needs a generative stage-2 "
+                       f"run: `nrt-train stage=rte mode=generative scene=family {ea_hint}`, "
+                       "then nrt-sample run=<that run>.")
+    effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
+    return GenerativeRun(path, Path(info["family_dir"]), effects,
+                         current_target(str(cfg.model._target_)))
+
+
+def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> Stage:
+    """The run's module from ``checkpoint`` on the CPU in eval mode, checked to decode
+    codes (``codes``, ``member_names``, ``property_grids_for``)."""
+    from hydra.utils import get_class
+
+    ckpt = checkpoint_path(run.path, checkpoint)
+    module = get_class(run.model_target).load_from_checkpoint(ckpt, map_location="cpu")
+    if not all(hasattr(module, a) for a in ("codes", "member_names", "property_grids_for")):
+        raise NrtError(f"run='{run.path}': its module {run.model_target} has no latent codes "
+                       f"and decoder; nrt-sample needs a generative stage-2 run "
+                       f"(`{GENERATIVE_RTE}`).")
+    return module.eval()

@@ -63,31 +63,39 @@ class EAField(nn.Module):
             nn.init.zeros_(self.modulation[-1].weight)
             nn.init.zeros_(self.modulation[-1].bias)
 
-    def _features(self, x: torch.Tensor, latent: torch.Tensor | None) -> torch.Tensor:
-        unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0])
-        features = self.encoding(unit)
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """The hash-grid features (..., levels * features) at world points ``x`` (..., 3)."""
+        return self.encoding((x - self.bbox[0]) / (self.bbox[1] - self.bbox[0]))
+
+    def _features(self, encoded: torch.Tensor, latent: torch.Tensor | None) -> torch.Tensor:
         if self.modulation is not None:
             if latent is None or latent.shape[-1] != self.latent_dim:
                 raise ValueError(f"this EA field is conditioned on latent codes of dimension "
                                  f"{self.latent_dim}: pass latent (..., {self.latent_dim}) "
                                  "broadcastable against the points' leading dimensions.")
-            features = features * (1.0 + self.modulation(latent))
+            encoded = encoded * (1.0 + self.modulation(latent))
         elif latent is not None:
             raise ValueError("this EA field has no latent code (latent_dim=0); build it with "
                              "latent_dim > 0 to condition it on one.")
-        return self.density_net(features)
+        return self.density_net(encoded)
+
+    def density_of_encoding(self, encoded: torch.Tensor, latent: torch.Tensor | None = None
+                            ) -> torch.Tensor:
+        """:meth:`density` from features :meth:`encode` gave (a frozen field's features at
+        fixed points can be computed once; ``latent`` as in :meth:`density`)."""
+        return self.activation(self._features(encoded, latent)[..., 0] + self.density_bias)
 
     def density(self, x: torch.Tensor, latent: torch.Tensor | None = None) -> torch.Tensor:
         """Density ``rho_EA`` (...,) at world points ``x`` (..., 3); stage 2 calls this.
         ``latent`` (..., d_z), broadcastable against ``x``'s leading dimensions, is required
         exactly when the field is conditioned (``latent_dim > 0``)."""
-        return self.activation(self._features(x, latent)[..., 0] + self.density_bias)
+        return self.density_of_encoding(self.encode(x), latent)
 
     def forward(self, x: torch.Tensor, d: torch.Tensor, latent: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """Density (...,) and colour (..., 3) at points ``x`` seen along view directions ``d``
         (``latent`` as in :meth:`density`)."""
-        h = self._features(x, latent)
+        h = self._features(self.encode(x), latent)
         sigma = self.activation(h[..., 0] + self.density_bias)
         rgb = nn.functional.softplus(self.color_net(torch.cat((h[..., 1:], sh_deg2(d)), -1)))
         return sigma, rgb

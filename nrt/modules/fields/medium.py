@@ -86,18 +86,25 @@ class Medium(nn.Module):
         self.phase = phase_head(effects)
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
 
-    @torch.no_grad()
     def grids(self, resolution: int, chunk: int = 65536) -> dict[str, torch.Tensor]:
-        """Properties at the box's cell centres, ``[z, y, x]``-indexed like the dataset's
-        ground truth: ``sigma_a``, ``sigma_s`` (R, R, R, 3) and ``g`` (R, R, R)."""
-        pts = cell_centres(resolution, self.bbox).reshape(-1, 3)
-        parts = [self(pts[i:i + chunk]) for i in range(0, len(pts), chunk)]
-        shape = (resolution,) * 3
-        out = {k: torch.cat([getattr(p, k).expand(-1, 3) for p in parts]).reshape(*shape, 3)
-               for k in ("sigma_a", "sigma_s")}
-        out["g"] = (torch.cat([p.g for p in parts]).reshape(shape) if self.phase != "none"
-                    else torch.zeros(shape, device=pts.device))
-        return out
+        """Properties at the box's cell centres (:func:`property_grids`)."""
+        return property_grids(self, resolution, chunk)
+
+
+@torch.no_grad()
+def property_grids(medium, resolution: int, chunk: int = 65536) -> dict[str, torch.Tensor]:
+    """A medium's properties at the cell centres of its box, ``[z, y, x]``-indexed like the
+    dataset's ground truth: ``sigma_a``, ``sigma_s`` (R, R, R, 3) and ``g`` (R, R, R) (zero
+    for an isotropic phase). ``medium(x) -> MediumProperties`` with ``bbox`` and ``phase``
+    (a :class:`Medium`, or voxels composed from one)."""
+    pts = cell_centres(resolution, medium.bbox).reshape(-1, 3)
+    parts = [medium(pts[i:i + chunk]) for i in range(0, len(pts), chunk)]
+    shape = (resolution,) * 3
+    out = {k: torch.cat([getattr(p, k).expand(-1, 3) for p in parts]).reshape(*shape, 3)
+           for k in ("sigma_a", "sigma_s")}
+    out["g"] = (torch.cat([p.g for p in parts]).reshape(shape) if medium.phase != "none"
+                else torch.zeros(shape, device=pts.device))
+    return out
 
 
 class NeuralMedium(Medium):

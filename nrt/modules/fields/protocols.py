@@ -84,6 +84,37 @@ class VoxelisedMedium(Protocol):
         """Properties on ``resolution``^3 cells in the ground truth's layout."""
 
 
+class LatentScatteredLightField(Protocol):
+    """The light field of generative stage 2 (``stage=rte mode=generative``): the scattered
+    light of every family member, decoded from its latent code. Built as
+    ``factory(effects=scene.effects)`` (members and d_z are its config's keywords)."""
+
+    bbox: torch.Tensor
+    radiance_scale: torch.Tensor
+    degree: int
+
+    def member(self, index: int, code: torch.Tensor) -> ScatteredLightField:
+        """Member ``index``'s light under ``code`` (d_z,), with the member's uncollided
+        cache: a :class:`ScatteredLightField` for the objectives."""
+
+
+class LatentVoxelisedMedium(Protocol):
+    """The medium of generative stage 2: a member's density on cells (the stage's, from the
+    EA field under the member's code) modulated under a latent code. Built as
+    ``factory(effects)`` (d_z is its config's keyword)."""
+
+    bbox: torch.Tensor
+    density_resolution: int
+    """Cells per axis of the densities it modulates."""
+
+    def voxels_for(self, density: torch.Tensor, code: torch.Tensor):
+        """The properties on cells (:class:`~nrt.modules.fields.voxel_medium.Voxels`) of a density
+        (R, R, R, 1) under ``code`` (d_z,), differentiable in both."""
+
+    def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
+        """Adapt to the run's ``progress`` in [0, 1] (coarse to fine); True if it changed."""
+
+
 class ModulatedMedium(Protocol):
     """The learned medium of the paper's formulation: a
     :class:`~nrt.modules.fields.medium.NeuralMedium`-like field modulating the EA density field.

@@ -11,7 +11,9 @@ grid that doubles during training (``resolutions`` at the run's fractions ``upsa
 path-tracing baseline does).
 
 It is the split stage's medium (``conf/model/medium/voxel.yaml``; the protocol:
-:class:`~nrt.modules.fields.protocols.VoxelisedMedium`).
+:class:`~nrt.modules.fields.protocols.VoxelisedMedium`). :class:`LatentVoxelMedium` is its
+generative version: one baked density per family member, the modulation decoded from a
+latent code (:class:`~nrt.modules.fields.latent_grid.LatentGridDecoder`).
 
 Transport queries the medium many times per step (shadow rays, marches), so the properties
 are composed once on the ``R``^3 cells (:meth:`voxels`, differentiable) and then read by a
@@ -21,12 +23,13 @@ interpolate linearly, as Mitsuba's grid volumes do.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
 
 import torch
 
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
+from nrt.modules.fields.latent_grid import LatentGridDecoder
 from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
 from nrt.physics.volume import cell_centres, resample_cells, sample_grid
 
@@ -65,16 +68,29 @@ class Voxels:
                                 extinction=sigma_t if c == 1 else None)
 
 
+@torch.no_grad()
+def bake(density: Callable[[torch.Tensor], torch.Tensor], resolution: int,
+         bbox: torch.Tensor) -> torch.Tensor:
+    """``density(points (N, 3)) -> (N,)`` at the centres of ``resolution``^3 cells of
+    ``bbox``, clamped at 0: (R, R, R, 1), ``[z, y, x]``."""
+    pts = cell_centres(resolution, bbox).reshape(-1, 3)
+    values = torch.cat([density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
+    return values.reshape(resolution, resolution, resolution, 1).clamp_min(0.0)
+
+
 class VoxelMedium(NeuralMedium):
     """EA density (baked on ``density_resolution``^3 cells) times a grid modulation of
-    ``resolutions[k]``^3 cells from the run's fraction ``upsample_at[k - 1]`` on."""
+    ``resolutions[k]``^3 cells from the run's fraction ``upsample_at[k - 1]`` on.
+    ``modulation(in_dim, out_dim, resolution=...)`` builds that grid (by default a
+    :class:`~nrt.modules.fields.medium.GridModulation`); its parameter ``values`` is resampled."""
 
     def __init__(self, effects: dict, resolutions: Sequence[int] = (8,),
                  upsample_at: Sequence[float] = (), density_resolution: int = 64,
-                 init_albedo: float = 0.8, parametrization: str = "scattering"):
+                 init_albedo: float = 0.8, parametrization: str = "scattering",
+                 modulation: Callable[..., torch.nn.Module] = GridModulation):
         check_schedule(resolutions, upsample_at,
                        "budget.rte.medium_resolutions / medium_upsample_at")
-        super().__init__(effects, None, partial(GridModulation, resolution=resolutions[0]),
+        super().__init__(effects, None, partial(modulation, resolution=resolutions[0]),
                          init_albedo=init_albedo, parametrization=parametrization)
         self.resolutions, self.upsample_at = tuple(resolutions), tuple(upsample_at)
         r = density_resolution
@@ -106,10 +122,8 @@ class VoxelMedium(NeuralMedium):
     @torch.no_grad()
     def set_density(self, density) -> None:
         """Bake ``density(points (N, 3)) -> (N,)`` (the EA field's) at the cell centres."""
-        r = self.density.shape[0]
-        pts = cell_centres(r, self.bbox.to(self.density.device)).reshape(-1, 3)
-        values = torch.cat([density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
-        self.density.copy_(values.reshape(r, r, r, 1).clamp_min(0.0))
+        self.density.copy_(bake(density, self.density.shape[0],
+                                self.bbox.to(self.density.device)))
 
     def rho(self, x: torch.Tensor) -> torch.Tensor:
         return sample_grid(self.density, x, self.bbox)[..., 0]
@@ -117,8 +131,12 @@ class VoxelMedium(NeuralMedium):
     def voxels(self) -> Voxels:
         """The properties on the density's cells (differentiable in the modulation)."""
         r = self.density.shape[0]
-        h = resample_cells(self.modulation.values, r) + self.offsets
-        props = self.heads(self.density, h)
+        return self.compose(self.density, resample_cells(self.modulation.values, r))
+
+    def compose(self, density: torch.Tensor, h: torch.Tensor) -> Voxels:
+        """:class:`Voxels` of a density (R, R, R, 1) and the modulation's raw outputs on the
+        same cells (R, R, R, n), offsets not yet added."""
+        props = self.heads(density, h + self.offsets)
         parts = [props.sigma_t, props.albedo]
         if self.phase == "field":
             parts.append(props.g.unsqueeze(-1))
@@ -128,3 +146,41 @@ class VoxelMedium(NeuralMedium):
     def forward(self, x: torch.Tensor) -> MediumProperties:
         return self.voxels()(x)
 
+
+
+class LatentVoxelMedium(VoxelMedium):
+    """The voxel medium of a scene family conditioned on latent codes (generative stage 2):
+    a density on ``density_resolution``^3 cells that the stage supplies per member (the EA
+    density under the member's code), modulated by the exponents and logits that a
+    :class:`~nrt.modules.fields.latent_grid.LatentGridDecoder` decodes from the shared feature grid
+    (coarse to fine, as the plain modulation grid) and the code z (``features`` channels, an
+    MLP of ``layers`` hidden layers of width ``hidden``). It holds no density itself."""
+
+    def __init__(self, effects: dict, latent_dim: int, features: int = 16, hidden: int = 64,
+                 layers: int = 1, resolutions: Sequence[int] = (8,),
+                 upsample_at: Sequence[float] = (), density_resolution: int = 64,
+                 init_albedo: float = 0.8, parametrization: str = "extinction"):
+        decoder = partial(LatentGridDecoder, latent_dim=latent_dim, features=features,
+                          hidden=hidden, layers=layers)
+        super().__init__(effects, resolutions, upsample_at, density_resolution, init_albedo,
+                         parametrization, modulation=decoder)
+        del self.density  # supplied per member and code by the stage
+        self.density_resolution = int(density_resolution)
+
+    def voxels_for(self, density: torch.Tensor, code: torch.Tensor) -> Voxels:
+        """The properties of a density (R, R, R, 1) modulated under ``code`` (d_z,), on the
+        density's cells (differentiable in the density, the decoder and the code)."""
+        return self.compose(density, self.modulation.on_cells(density.shape[0], code))
+
+    def voxels(self) -> Voxels:
+        raise TypeError(NO_DENSITY)
+
+    def rho(self, x: torch.Tensor) -> torch.Tensor:
+        raise TypeError(NO_DENSITY)
+
+    def set_density(self, density) -> None:
+        raise TypeError(NO_DENSITY)
+
+
+NO_DENSITY = ("a latent voxel medium holds no density of its own (one per family member and "
+              "code): use voxels_for(density, code).")

@@ -35,9 +35,10 @@ MOVED_MODULES: dict[str, str] = {
     f"nrt.modules.{name}": f"nrt.modules.{home}.{name}"
     for home, names in (("encodings", ("hash_grid", "siren", "activations")),
                         ("fields", ("ea_field", "light_field", "sh_light_field", "medium",
-                                    "voxel_medium", "protocols", "coarse_to_fine")),
+                                    "voxel_medium", "protocols", "coarse_to_fine",
+                                    "latent_grid")),
                         ("stages", ("stage", "ea", "generative_ea", "rte", "rte_split", "dpt",
-                                    "schedules", "components")))
+                                    "schedules", "components", "generative_rte")))
     for name in names}
 """Old module path -> today's, for ``_target_`` strings recorded before the layout."""
 

@@ -144,20 +144,26 @@ class EAModule(Stage):
                                                         res)}
 
 
+def check_checkpoint_file(ckpt_path: str | None, first_stage: str) -> None:
+    """Refuse an ``init.ea_ckpt`` that is no file, naming ``first_stage``, the command that
+    trains the stage-1 run."""
+    if not ckpt_path or not Path(ckpt_path).is_file():
+        raise NrtError(f"init.ea_ckpt='{ckpt_path}' is not a checkpoint file. Train stage 1 "
+                       f"first ({first_stage}) or pass init.ea_ckpt=<path/to/last.ckpt> "
+                       "(single-scene stage 2 also runs without a first stage: init=none).")
+
+
 def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu") -> EAField:
     """The trained EA field of a stage-1 checkpoint (for the density queries of the stages
     that start from it); a missing file is a user error naming the fix."""
-    if not ckpt_path or not Path(ckpt_path).is_file():
-        raise NrtError(f"init.ea_ckpt='{ckpt_path}' is not a checkpoint file. Train stage 1 "
-                       "first (nrt-train stage=ea scene=<same scene>) or pass "
-                       "init.ea_ckpt=<path/to/last.ckpt> (stage 2 also runs without a first "
-                       "stage: init=none).")
+    check_checkpoint_file(ckpt_path, "nrt-train stage=ea scene=<same scene>")
     saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
     if saved.get("hyper_parameters", {}).get("field", {}).get("latent_dim", 0):
         raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a generative EA run over a scene family "
-                       "(mode=generative): its field needs a member's latent code, and stage 2 "
-                       "in generative mode is not built yet. Start stage 2 from a single-scene "
-                       "EA run (nrt-train stage=ea scene=<scene>).")
+                       "(mode=generative): its field needs a member's latent code. Train stage "
+                       "2 on the family (nrt-train stage=rte mode=generative scene=family "
+                       "init.ea_ckpt=<it>), or start from a single-scene EA run (nrt-train "
+                       "stage=ea scene=<scene>).")
     module = EAModule.load_from_checkpoint(ckpt_path, map_location=map_location)
     return module.field
 

@@ -28,9 +28,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from nrt.errors import ConfigError, DatasetError
-from nrt.modules.stages.ea import DENSITY_GRID_FILE, EAModule
+from nrt.errors import ConfigError, DatasetError, NrtError
+from nrt.modules.fields.ea_field import EAField
+from nrt.modules.stages.ea import DENSITY_GRID_FILE, EAModule, check_checkpoint_file
 from nrt.modules.stages.stage import check_learning_rates
+from nrt.run_dirs import read_run_info
 from nrt.tensorboard import log_image
 
 LATENTS_FILE = "latents.npz"
@@ -132,8 +134,35 @@ class GenerativeEAModule(EAModule):
         exports = {f"density_grid_{name}": self.write_density_grid(
             run_dir / MEMBERS_DIR / name / DENSITY_GRID_FILE, res, self.codes[k])
             for k, name in enumerate(names)}
-        path = run_dir / LATENTS_FILE
-        np.savez(path, codes=self.codes.detach().cpu().numpy(), names=np.array(names),
-                 seeds=np.array(seeds))
-        exports["latents"] = str(path)
+        exports["latents"] = save_latents(run_dir, self.codes, names, seeds)
         return exports
+
+
+def save_latents(run_dir: str | Path, codes: torch.Tensor, names: list[str],
+                 seeds: list[int]) -> str:
+    """Write ``latents.npz`` (``codes`` (K, d_z), the members' ``names`` and ``seeds``)
+    into ``run_dir``; returns its path."""
+    path = Path(run_dir) / LATENTS_FILE
+    np.savez(path, codes=codes.detach().cpu().numpy(), names=np.array(names),
+             seeds=np.array(seeds))
+    return str(path)
+
+
+def load_generative_ea(ckpt_path: str | None) -> tuple[dict, EAField, torch.Tensor,
+                                                       list[dict] | None]:
+    """What generative stage 2 takes from a generative EA checkpoint: the field's config,
+    the field (on the CPU), the codes (K, d_z) and the members (``index``, ``seed``,
+    ``name``, as the run's ``run.json`` records them; None where it has none). A
+    missing file, or a single-scene EA run, is a user error naming the fix."""
+    check_checkpoint_file(ckpt_path, "nrt-train stage=ea mode=generative scene=family")
+    saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+    field = dict(saved.get("hyper_parameters", {}).get("field", {}))
+    if not field.get("latent_dim") or "codes" not in saved.get("state_dict", {}):
+        raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a single-scene EA run; stage 2 in "
+                       "generative mode starts from a generative EA run over the same family "
+                       "(nrt-train stage=ea mode=generative scene=family, then pass its "
+                       "checkpoints/last.ckpt).")
+    module = GenerativeEAModule.load_from_checkpoint(ckpt_path, map_location="cpu")
+    codes = module.codes.detach().clone()
+    info = read_run_info(Path(ckpt_path).resolve().parent.parent)
+    return field, module.field, codes, info.get("members")

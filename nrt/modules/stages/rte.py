@@ -91,7 +91,7 @@ class RadiativeTransferStage(Stage):
         self.env_sun: EnvironmentMap | None = None  # the sun's part E - E_rest
         self.lights: DirectLights | None = None
         self._env_sampler: EnvironmentDirectionSampler | None = None
-        self._baselines: dict[int, dict[str, float]] = {}
+        self._baselines: dict[tuple[int | None, int], dict[str, float]] = {}
 
     @staticmethod
     def check_objectives(weights: dict, objectives: tuple[str, ...], hint: str = "") -> None:
@@ -178,10 +178,16 @@ class RadiativeTransferStage(Stage):
         return self.env_sun.lookup(dirs).sum(-1) <= 0
 
     # ------------------------------------------------------------- validation
+    def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
+        """:meth:`predict_pixels` of a validation batch (a family member's view in the
+        generative stage)."""
+        return self.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
+
     def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
+        """Scores one held-out view; the output carries ``member`` when the batch does."""
         h, w = batch["shape"]
         ref = batch["rgb"]
-        pred = self.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
+        pred = self.predict_view(batch)
         self.log("val/psnr_exit", psnr(pred["exit"], ref), batch_size=1)
         scale = self.light.radiance_scale
         self.log("val/image_mse", torch.mean(((pred["vre"] - ref) / scale) ** 2), batch_size=1)
@@ -190,12 +196,16 @@ class RadiativeTransferStage(Stage):
         if batch_idx == 0:
             log_image(self, "val/vre|exit|truth", torch.cat(
                 [p.reshape(h, w, 3) for p in (pred["vre"], pred["exit"], ref)], 1))
-        return {"image": pred["vre"].reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
+        out = {"image": pred["vre"].reshape(h, w, 3), "reference": ref.reshape(h, w, 3)}
+        if batch.get("member") is not None:
+            out["member"] = int(batch["member"])
+        return out
 
     def _view_baselines(self, batch: dict) -> dict[str, float]:
         """PSNR of medium-free (background only) and no-scattering predictions (the true
-        medium's transmitted background ``T E(v)``, when ground truth exists); cached."""
-        view = int(batch["view"])
+        medium's transmitted background ``T E(v)``, when ground truth exists); cached per
+        (member, view)."""
+        view = (batch.get("member"), int(batch["view"]))
         if view not in self._baselines:
             ref, bg = batch["rgb"], batch["background"]
             out = {"psnr_background_only": float(psnr(bg, ref))}

@@ -60,6 +60,9 @@ log = logging.getLogger(__name__)
 
 OBJECTIVES = ("photo", "transport")
 
+RAY_KEYS = ("origins", "dirs", "background", "rgb")
+"""What the photo objective reads of a ray batch."""
+
 FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
         "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
         "paper's formulation (experiment=rte_paper)")
@@ -77,7 +80,13 @@ def detached(medium):
 
 class SplitRTEModule(RadiativeTransferStage):
     """A scattered-light field and a voxelised medium (by default the SH grid and the voxel
-    medium) on the photo and transport objectives."""
+    medium) on the photo and transport objectives. The objectives and renderings take the
+    medium and the light as arguments, so the generative stage
+    (:mod:`nrt.modules.stages.generative_rte`) runs them per family member."""
+
+    LIGHT_PROTOCOL: type = ScatteredLightField
+    MEDIUM_PROTOCOL: type = VoxelisedMedium
+    FITS = FITS
 
     def __init__(self, effects: dict, light_field: Callable[..., ScatteredLightField] | dict,
                  medium: Callable[..., VoxelisedMedium] | dict, density: dict,
@@ -98,10 +107,10 @@ class SplitRTEModule(RadiativeTransferStage):
                               " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
         check_tonemap(photo_tonemap)
         check_learning_rates(lr, "model.lr", ("light", "medium"))
-        self.light: ScatteredLightField = build(make_light, ScatteredLightField, "light_field",
-                                                FITS, effects=effects)
+        self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
+                           effects=effects)
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
-            self.medium = build(make_medium, VoxelisedMedium, "medium", FITS, effects)
+            self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
         self._ea_ckpt = density.get("ea_ckpt")
         self._baked = False
         self._uncollided_fresh = False
@@ -110,19 +119,26 @@ class SplitRTEModule(RadiativeTransferStage):
     def setup(self, stage: str) -> None:
         super().setup(stage)
         if self.learns_medium and self.hparams.density["source"] == "ea" \
-                and not self._baked and self._trainer is not None and \
-                self.trainer.datamodule is not None:
-            ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
-            self.medium.set_density(ea.density)  # a resumed run loads the same values
+                and not self._baked and self.datamodule() is not None:
+            self.bake_density()  # a resumed run loads the same values
             self._baked = True
-            log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
 
-    def configure_optimizers(self):
+    def bake_density(self) -> None:
+        """Bake the EA run's density into the medium."""
+        ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
+        self.medium.set_density(ea.density)
+        log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
+
+    def param_groups(self) -> list[dict]:
+        """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
         lr = self.hparams.lr
         groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
         if self.learns_medium:
-            groups.append({"params": [p for p in self.medium.parameters()], "lr": lr["medium"]})
-        opt = torch.optim.Adam(groups)
+            groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"]})
+        return groups
+
+    def configure_optimizers(self):
+        opt = torch.optim.Adam(self.param_groups())
         sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
@@ -132,10 +148,10 @@ class SplitRTEModule(RadiativeTransferStage):
         learned medium, the ground truth itself in forward mode."""
         return self.medium.voxels() if self.learns_medium else self.medium
 
-    def inscatter(self, medium):
+    def inscatter(self, medium, light: ScatteredLightField):
         """In-scattering of all light for the camera rays' VRE: the sky's and the known
         lights' first scattering (with gradients to ``medium``) plus the scattered light's
-        exact SH in-scattering (coefficients without gradient, ``g^l`` with)."""
+        (``light``) exact SH in-scattering (coefficients without gradient, ``g^l`` with)."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
 
@@ -146,24 +162,30 @@ class SplitRTEModule(RadiativeTransferStage):
             if self.lights is not None and len(self.lights):
                 total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
                                                  medium.bbox, int(s["shadow_steps"]), jitter=True)
-            return total + self.light.inscatter(x, w, props.g, trainable=False)
+            return total + light.inscatter(x, w, props.g, trainable=False)
         return source
 
     @torch.no_grad()
-    def refresh_uncollided(self, medium) -> None:
-        """SH projection of the uncollided light at the light field's cache points."""
+    def refresh_uncollided(self, medium, light: ScatteredLightField) -> None:
+        """SH projection of the uncollided light in ``medium`` at ``light``'s cache points
+        (the first refresh replaces the cache, later ones blend into it)."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
-        pts = self.light.cache_points()
+        pts = light.cache_points()
         chunk = int(s.get("uncollided_chunk", 2048))
-        coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, self.light.bbox,
+        coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, light.bbox,
                                         self.env_rest, self._env_sampler, self.lights,
-                                        self.light.degree, int(s["uncollided_directions"]),
+                                        light.degree, int(s["uncollided_directions"]),
                                         int(s["shadow_steps"]))
                           for i in range(0, len(pts), chunk)])
         blend = 1.0 if not self._uncollided_fresh else float(s.get("uncollided_blend", 1.0))
-        self.light.set_uncollided(coef, blend)
-        self._uncollided_fresh = True
+        light.set_uncollided(coef, blend)
+
+    def uncollided_due(self) -> bool:
+        """Whether this step refreshes the uncollided cache (first, then every
+        ``samples.uncollided_every`` steps)."""
+        every = int(self.hparams.samples["uncollided_every"])
+        return not self._uncollided_fresh or self.global_step % every == 0
 
     def _update_resolution(self) -> None:
         if self.learns_medium and \
@@ -172,20 +194,29 @@ class SplitRTEModule(RadiativeTransferStage):
                      self.medium.resolution, self.global_step)
 
     # --------------------------------------------------------------- training
+    def transport_objective(self, medium, light: ScatteredLightField, n: int) -> torch.Tensor:
+        """The transport loss of ``light`` in ``medium`` (no gradient to it) at ``n`` uniform
+        points and directions of travel."""
+        bbox = light.bbox
+        pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
+        dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
+        return transport_loss(light, detached(medium), pts, dirs,
+                              int(self.hparams.samples["transport_samples"]))
+
+    def photo_objective(self, medium, light: ScatteredLightField, rays: dict) -> torch.Tensor:
+        """The photo loss of the camera ``rays`` (``origins``, ``dirs``, ``background``,
+        ``rgb``) rendered through ``medium`` with ``light``'s in-scattering."""
+        pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
+                                int(self.hparams.samples["vre_samples"]),
+                                self.inscatter(medium, light))
+        return photo_loss(pred, rays["rgb"], light.radiance_scale, self.hparams.photo_tonemap)
+
     def objective(self, name: str, batch: dict, medium) -> torch.Tensor:
-        s, bbox = self.hparams.samples, self.light.bbox
+        s = self.hparams.samples
         if name == "transport":
-            n = int(s["transport_points"])
-            pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
-            dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
-            return transport_loss(self.light, detached(medium), pts, dirs,
-                                  int(s["transport_samples"]))
+            return self.transport_objective(medium, self.light, int(s["transport_points"]))
         n = int(s["photo_rays"])
-        pred = render_view_rays(medium, batch["origins"][:n], batch["dirs"][:n],
-                                batch["background"][:n], int(s["vre_samples"]),
-                                self.inscatter(medium))
-        return photo_loss(pred, batch["rgb"][:n], self.light.radiance_scale,
-                          self.hparams.photo_tonemap)
+        return self.photo_objective(medium, self.light, {k: batch[k][:n] for k in RAY_KEYS})
 
     def active_weights(self) -> dict[str, float]:
         photo_on = self.progress() >= self.hparams.light_warmup and self.learns_medium
@@ -197,9 +228,9 @@ class SplitRTEModule(RadiativeTransferStage):
         self._update_resolution()
         medium = self.transport_medium()
         start = time.perf_counter()
-        every = int(self.hparams.samples["uncollided_every"])
-        if not self._uncollided_fresh or self.global_step % every == 0:
-            self.refresh_uncollided(detached(medium))
+        if self.uncollided_due():
+            self.refresh_uncollided(detached(medium), self.light)
+            self._uncollided_fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
         total = self.backward_objectives(lambda name: self.objective(name, batch, medium))
@@ -215,18 +246,24 @@ class SplitRTEModule(RadiativeTransferStage):
         """Two predictions of ``L(o, -v)`` (R, 3) for view rays, chunked, without graph:
         ``vre`` (the photo objective's rendering, strata centres) and ``exit`` (``T E(v)``
         plus the scattered light where the ray leaves the box: the light field alone)."""
+        with torch.no_grad():
+            return self.render_pixels(origins, dirs, background, self.transport_medium(),
+                                      self.light)
+
+    @torch.no_grad()
+    def render_pixels(self, origins: torch.Tensor, dirs: torch.Tensor, background: torch.Tensor,
+                      medium, light: ScatteredLightField) -> dict[str, torch.Tensor]:
+        """:meth:`predict_pixels` through ``medium`` with ``light``."""
         s, chunk = self.hparams.samples, self.hparams.eval_chunk
         out: dict[str, list] = {"vre": [], "exit": []}
-        with torch.no_grad():
-            medium = self.transport_medium()
-            source = self.inscatter(medium)
-            for i in range(0, len(origins), chunk):
-                o, d, bg = origins[i:i + chunk], dirs[i:i + chunk], background[i:i + chunk]
-                out["vre"].append(render_view_rays(medium, o, d, bg, int(s["vre_samples"]),
-                                                   source, jitter=False))
-                scattered = exit_radiance(self.light, o, d, torch.zeros_like(bg))
-                out["exit"].append(transmitted_background(medium, o, d, bg,
-                                                          int(s["vre_samples"])) + scattered)
+        source = self.inscatter(medium, light)
+        for i in range(0, len(origins), chunk):
+            o, d, bg = origins[i:i + chunk], dirs[i:i + chunk], background[i:i + chunk]
+            out["vre"].append(render_view_rays(medium, o, d, bg, int(s["vre_samples"]),
+                                               source, jitter=False))
+            scattered = exit_radiance(light, o, d, torch.zeros_like(bg))
+            out["exit"].append(transmitted_background(medium, o, d, bg,
+                                                      int(s["vre_samples"])) + scattered)
         return {k: torch.cat(v) for k, v in out.items()}
 
     # ------------------------------------------------------------------ resume

@@ -16,6 +16,8 @@ Optional, with these defaults:
   (what the property metrics, the periodic re-render and ``nrt-eval`` score); None for a
   stage that learns none.
 - :meth:`Stage.medium_bbox`: the box those grids cover; None without them.
+- :meth:`Stage.member_property_grids`: a family member's learned medium, for a stage
+  trained on a scene family (``mode=generative``); None otherwise.
 - :attr:`Stage.learns_g`: whether g is a learned property that metrics should score
   (default: whenever the scene's phase has a g).
 - :meth:`Stage.export`: files written into the run folder after training; none.
@@ -69,6 +71,12 @@ class Stage(L.LightningModule):
         """The learned medium at resolution^3 cells, ``[z, y, x]``-indexed like the dataset's
         ground truth: ``sigma_a``, ``sigma_s`` (R, R, R, 3) and ``g`` (R, R, R); None for a
         stage that learns no medium."""
+        return None
+
+    def member_property_grids(self, member: int, resolution: int
+                              ) -> dict[str, torch.Tensor] | None:
+        """Member ``member``'s learned medium in the layout of :meth:`property_grids`, for
+        a stage trained on a scene family; None for a stage without one medium a member."""
         return None
 
     def medium_bbox(self) -> torch.Tensor | None:

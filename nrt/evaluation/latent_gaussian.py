@@ -1,0 +1,82 @@
+"""The Gaussian fitted to a generative run's learned latent codes, and samples from it.
+
+An auto-decoder (DeepSDF manner) learns one code z_k per training scene; new media are
+decoded from codes drawn from ``N(mu, Sigma)`` fitted to them: ``mu`` the codes' mean and
+``Sigma`` their unbiased sample covariance (divisor K - 1).
+
+Guard for few codes: K codes span at most K - 1 directions, so for ``K <= d_z`` the sample
+covariance ``S`` is singular and a Gaussian with it draws only inside the codes' affine span
+(with ``K = 2``: on the line through both codes). The fit then shrinks ``S`` toward its
+diagonal, ``Sigma = (1 - lam) S + lam diag(S)``, which keeps every code dimension's variance
+and makes ``Sigma`` positive definite whenever every dimension varies. ``lam`` ("auto") is 0
+for ``K > d_z`` (the plain full covariance) and ``(d_z - K + 1) / d_z`` for ``K <= d_z``:
+the share of dimensions that ``S`` misses (its rank deficit over d_z), so one code short of
+full rank shrinks by 1/d_z and K = 1 would shrink fully. A number in [0, 1] overrides it.
+A dimension along which no two codes differ keeps variance 0 (its samples equal the mean).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from nrt.errors import ConfigError
+
+
+def auto_shrinkage(count: int, dim: int) -> float:
+    """``lam`` of the module docstring: 0 for K > d_z, else (d_z - K + 1) / d_z."""
+    return 0.0 if count > dim else (dim - count + 1) / dim
+
+
+@dataclass(frozen=True)
+class LatentGaussian:
+    """``N(mean, cov)`` over codes of ``dim`` values, fitted to ``count`` codes with
+    covariance shrinkage ``shrinkage`` (float64 tensors on the CPU)."""
+
+    mean: torch.Tensor
+    cov: torch.Tensor
+    shrinkage: float
+    count: int
+
+    @property
+    def dim(self) -> int:
+        return int(self.mean.shape[0])
+
+    def factor(self) -> torch.Tensor:
+        """A square root ``A`` of ``cov`` (``A A^T = cov``), from its eigendecomposition
+        (exact for the positive semi-definite covariances of few codes, unlike Cholesky)."""
+        evals, evecs = torch.linalg.eigh(self.cov)
+        return evecs * evals.clamp_min(0).sqrt()
+
+    def sample(self, n: int, seed: int = 0) -> torch.Tensor:
+        """``n`` codes (n, dim), float32, drawn with a generator seeded by ``seed``."""
+        gen = torch.Generator().manual_seed(int(seed))
+        eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
+        return (self.mean + eps @ self.factor().T).float()
+
+
+def fit_latent_gaussian(codes: torch.Tensor, shrinkage: float | str = "auto") -> LatentGaussian:
+    """Fit ``N(mu, Sigma)`` to ``codes`` (K, d_z), K >= 2 (module docstring)."""
+    codes = torch.as_tensor(codes).detach().double().cpu()
+    if codes.ndim != 2 or codes.shape[0] < 2:
+        raise ConfigError(f"A Gaussian over latent codes needs at least 2 codes of shape "
+                          f"(K, d_z); got {tuple(codes.shape)}. Train the generative run on "
+                          "a family of K >= 2 members (scene.family.members).")
+    if not torch.isfinite(codes).all():
+        raise ConfigError("The run's latent codes are not all finite: its training diverged; "
+                          "retrain it (or resume from an earlier checkpoint).")
+    count, dim = codes.shape
+    if shrinkage == "auto":
+        lam = auto_shrinkage(count, dim)
+    elif isinstance(shrinkage, (int, float)) and not isinstance(shrinkage, bool) \
+            and 0.0 <= float(shrinkage) <= 1.0:
+        lam = float(shrinkage)
+    else:
+        raise ConfigError(f"gaussian.shrinkage={shrinkage!r}: give auto or a number in "
+                          "[0, 1] (0: the full sample covariance, 1: its diagonal only).")
+    mean = codes.mean(0)
+    centred = codes - mean
+    sample_cov = centred.T @ centred / (count - 1)
+    cov = (1 - lam) * sample_cov + lam * torch.diag(torch.diagonal(sample_cov))
+    return LatentGaussian(mean=mean, cov=cov, shrinkage=lam, count=count)

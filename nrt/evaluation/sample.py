@@ -1,0 +1,414 @@
+"""Sample new media from a generative run and score them: what ``nrt-sample`` reports.
+
+A generative stage-2 run (``nrt-train stage=rte mode=generative scene=family``) learned one
+latent code per family member and a decoder from any code to a medium
+(:class:`LatentMediumModel`). ``nrt-sample``:
+
+1. fits ``N(mu, Sigma)`` to the learned codes (:mod:`nrt.evaluation.latent_gaussian`) and
+   draws ``n`` codes from it (``seed``);
+2. decodes each to property grids (``property_grids_for``), checked finite and valid
+   (sigma >= 0, |g| < 1), and exports them as ``medium_grids.npz`` and Mitsuba volumes;
+3. renders each with Mitsuba ``volpath`` (the dataset renderer's scene, via
+   :func:`nrt.evaluation.rerender.render_frames`) from the family's held-out cameras under
+   its shared training sky and its held-back sky;
+4. computes FID on random crops (:class:`nrt.metrics.FID`), the paper's two columns:
+   ``fid_train_illumination``, the samples under the training sky against the members'
+   ground-truth images under it, and ``fid_novel_illumination``, the samples under the
+   held-back sky against the members' images under that sky. With ``truth_reference`` the
+   members' true media, rendered exactly as the samples are and taken in turn to make up
+   ``n`` media (the samples' image and crop counts; fresh crop positions on repeats), are
+   scored the same way (``*_truth``): what a generator that reproduced its training
+   members would score at these counts, FID's bias at this size;
+5. scores each member's reconstruction from its own code against its ground truth
+   (property MSE x 10^2, ``recon_mse_<property>_x100`` the mean over members);
+6. draws a picture of the samples per sky and a strip of media decoded along
+   ``z(t) = (1 - t) z_a + t z_b`` between two learned codes, with each step's property MSE
+   to both endpoints.
+
+Images stay linear radiance; FID and the pictures map both sets of a column through
+``log1p(x) / log1p(white)``, clamped to [0, 1], with ``white`` the median over the column's
+real images of each image's largest value (:func:`white_of`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from nrt.data.dataset import SceneDataset, load_dataset
+from nrt.data.exr import write_exr
+from nrt.data.family import Family
+from nrt.data.grids import MEDIUM_GRIDS_FILE, PROPERTY_KEYS, save_property_grids
+from nrt.errors import NrtError
+from nrt.evaluation.evaluate import property_metrics
+from nrt.evaluation.images import display, save_png
+from nrt.evaluation.latent_gaussian import LatentGaussian, fit_latent_gaussian
+from nrt.evaluation.rerender import render_frames
+from nrt.metrics import FID
+
+log = logging.getLogger(__name__)
+
+MIN_CROP = 16
+
+
+class LatentMediumModel(Protocol):
+    """What ``nrt-sample`` needs of a generative stage-2 module (the issue-15 contract):
+    ``codes`` (K, d_z), one row per family member in the family's order, and the medium
+    decoded from any code on ``resolution``^3 cells in the format of
+    ``Stage.property_grids`` (CPU, no gradient)."""
+
+    codes: torch.Tensor
+
+    def member_names(self) -> list[str]: ...
+
+    def property_grids_for(self, code: torch.Tensor, resolution: int
+                           ) -> dict[str, torch.Tensor]: ...
+
+    def medium_bbox(self) -> torch.Tensor | None: ...
+
+
+@dataclass
+class FamilyData:
+    """The family as ``nrt-sample`` uses it: ``cameras`` (member 0's held-out split: the
+    camera rig and both skies every member shares), each member's ground-truth grids and
+    the scene's effects."""
+
+    family: Family
+    cameras: SceneDataset
+    truths: list[dict[str, torch.Tensor]]
+    effects: dict
+
+    @property
+    def skies(self) -> dict[str, str]:
+        """Column name -> environment: ``train`` (shared training sky), ``novel`` (held back)."""
+        return {"train": self.family.train_environment, "novel": self.family.heldout_environment}
+
+
+def load_family_data(family: Family, effects: dict) -> FamilyData:
+    """Read the family's camera rig and its members' ground truths (all must have one)."""
+    cameras = load_dataset(family.member(0).folder, "test")
+    truths = []
+    for member in family.members:
+        truth = load_dataset(member.folder, "test").ground_truth
+        if truth is None:
+            raise NrtError(f"Family member '{member.name}' ({member.folder}) has no "
+                           "ground_truth.npz: nrt-sample scores reconstructions against each "
+                           "member's true medium. Render the family with nrt-data scene=family.")
+        truths.append(truth)
+    return FamilyData(family, cameras, truths, effects)
+
+
+@dataclass
+class SampleSettings:
+    """``conf/sample.yaml``'s keys in one place (see there for their meaning)."""
+
+    n: int = 16
+    seed: int = 0
+    resolution: int | None = None
+    shrinkage: float | str = "auto"
+    views: int | None = 4
+    spp: int | None = None
+    export_mitsuba: bool = True
+    export_exr: bool = True
+    fid_crop: int | None = None
+    fid_n_crops: int = 4
+    fid_real_views: int | None = None
+    fid_truth_reference: bool = True
+    interpolate_members: Sequence[int] | None = None
+    interpolate_steps: int = 7
+    picture_max_samples: int = 16
+
+    def check(self, members: int | None = None) -> None:
+        """Refuse values no sampling can use (before anything is loaded or rendered)."""
+        def whole(value, least: int) -> bool:
+            return isinstance(value, int) and not isinstance(value, bool) and value >= least
+        bad = [(k, v, m) for k, v, least, m in (
+            ("n", self.n, 1, "the number of media to sample, >= 1"),
+            ("render.views", self.views, 1, "held-out cameras per sky, >= 1 (null: all)"),
+            ("render.spp", self.spp, 1, "samples per pixel, >= 1 (null: the dataset's)"),
+            ("resolution", self.resolution, 2, "cells per axis, >= 2 (null: the truth's)"),
+            ("fid.crop", self.fid_crop, MIN_CROP, f"crop pixels, >= {MIN_CROP} (null: auto)"),
+            ("fid.n_crops", self.fid_n_crops, 1, "crops per image, >= 1"),
+            ("fid.real_views", self.fid_real_views, 1, "images per member, >= 1 (null: all)"),
+            ("interpolate.steps", self.interpolate_steps, 2, "media along the strip, >= 2"),
+            ("picture.max_samples", self.picture_max_samples, 1, "samples drawn, >= 1"))
+            if v is not None and not whole(v, least)
+            or v is None and k in ("n", "fid.n_crops", "interpolate.steps",
+                                   "picture.max_samples")]
+        if bad:
+            key, value, meaning = bad[0]
+            raise NrtError(f"{key}={value!r}: must be {meaning}. "
+                           "For example: nrt-sample run=<generative stage-2 run> n=16.")
+        pair = self.interpolate_members
+        if pair is not None and (len(pair) != 2 or pair[0] == pair[1] or any(
+                not isinstance(i, int) or members is not None and not 0 <= i < members
+                for i in pair)):
+            top = f"0..{members - 1}" if members is not None else "member positions"
+            raise NrtError(f"interpolate.members={list(pair)}: give two different members "
+                           f"({top}) to interpolate between, or null for the two codes "
+                           "farthest apart.")
+
+
+@dataclass
+class SampleResult:
+    """What a sampling found: flat ``metrics``, per-member reconstruction rows, the
+    interpolation rows, the fitted Gaussian and the sampled codes."""
+
+    metrics: dict[str, float] = field(default_factory=dict)
+    members: list[dict] = field(default_factory=list)
+    interpolation: list[dict] = field(default_factory=list)
+    gaussian: LatentGaussian | None = None
+    samples: torch.Tensor | None = None
+    pictures: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def check_medium(grids: Mapping[str, torch.Tensor], what: str) -> dict[str, torch.Tensor]:
+    """``grids``' property arrays as float32 CPU tensors, refused unless finite with
+    sigma >= 0 and |g| < 1 (what Mitsuba's volumes and the HG phase need)."""
+    out = {k: torch.as_tensor(grids[k]).detach().float().cpu() for k in PROPERTY_KEYS}
+    finite = all(torch.isfinite(v).all() for v in out.values())
+    if not finite or (out["sigma_a"] < 0).any() or (out["sigma_s"] < 0).any() \
+            or (out["g"].abs() >= 1).any():
+        raise NrtError(f"The medium decoded for {what} is not a valid medium (finite, "
+                       "sigma >= 0, |g| < 1): the generative run's decoder produced "
+                       "non-physical values; its training may have diverged.")
+    return out
+
+
+def decode(model: LatentMediumModel, code: torch.Tensor, resolution: int, what: str
+           ) -> dict[str, torch.Tensor]:
+    """The checked medium of ``code`` (d_z,) on ``resolution``^3 cells."""
+    with torch.no_grad():
+        grids = model.property_grids_for(code.detach().float().cpu(), int(resolution))
+    return check_medium(grids, what)
+
+
+def sky_frames(cameras: SceneDataset, environment: str, views: int | None) -> list[int]:
+    """The first ``views`` held-out frames (all for None) under ``environment``."""
+    env = cameras.env_names.index(environment)
+    frames = [i for i in range(len(cameras)) if int(cameras.env_index[i]) == env]
+    return frames[:views] if views else frames
+
+
+def render_medium(grids: Mapping, data: FamilyData, frames: dict[str, list[int]], spp: int,
+                  seed: int) -> dict[str, np.ndarray]:
+    """Linear renders (V, H, W, 3) of one medium per column (``train``, ``novel``)."""
+    return {col: render_frames(grids, data.effects, data.cameras, idx, spp, seed=seed)
+            for col, idx in frames.items()}
+
+
+def real_images(data: FamilyData, environment: str, per_member: int | None) -> torch.Tensor:
+    """Every member's ground-truth images under ``environment`` (training and held-out
+    views; the first ``per_member`` of each for a number), (M, H, W, 3) linear."""
+    out = []
+    for member in data.family.members:
+        images = []
+        for split in ("train", "test"):
+            split_data = load_dataset(member.folder, split)
+            env = split_data.env_names.index(environment)
+            images.append(split_data.images[split_data.env_index == env])
+        images = torch.cat(images)
+        out.append(images[:per_member] if per_member else images)
+    return torch.cat(out)
+
+
+def fid_score(fid: FID, real: torch.Tensor, fake: torch.Tensor) -> float:
+    """FID of ``fake`` against ``real`` (linear images), both through ``fid.white``."""
+    fid.reset()
+    fid.update(real, real=True)
+    fid.update(fake, real=False)
+    return float(fid.compute())
+
+
+def reconstruction(model: LatentMediumModel, data: FamilyData, bbox: torch.Tensor,
+                   resolution: int) -> list[dict]:
+    """Each member decoded from its own code against its ground truth: a row per member
+    (``member``, ``name``, ``mse_<property>_x100``)."""
+    rows = []
+    for k, (name, truth) in enumerate(zip(model.member_names(), data.truths, strict=True)):
+        grids = decode(model, model.codes[k], resolution, f"member {k} ({name})")
+        rows.append({"member": k, "name": name,
+                     **property_metrics(grids, truth, bbox, data.effects)})
+    return rows
+
+
+def farthest_pair(codes: torch.Tensor) -> tuple[int, int]:
+    """The two codes farthest apart (Euclidean), lowest indices first on ties."""
+    dist = torch.cdist(codes.detach().double(), codes.detach().double())
+    flat = int(torch.argmax(dist))
+    a, b = divmod(flat, dist.shape[1])
+    return (min(a, b), max(a, b))
+
+
+def interpolation(model: LatentMediumModel, pair: tuple[int, int], steps: int,
+                  resolution: int, effects: dict, bbox: torch.Tensor
+                  ) -> tuple[list[dict[str, torch.Tensor]], list[dict]]:
+    """Media along ``z(t) = (1 - t) z_a + t z_b``, t = 0, 1/(steps-1), ..., 1, and a row
+    per step with t and the property MSE x 10^2 to both endpoints' media."""
+    z_a, z_b = (model.codes[i].detach().float().cpu() for i in pair)
+    ts = torch.linspace(0, 1, steps)
+    media = [decode(model, (1 - t) * z_a + t * z_b, resolution, f"interpolation t={t:.3f}")
+             for t in ts.tolist()]
+    rows = []
+    for t, grids in zip(ts.tolist(), media, strict=True):
+        row = {"t": t}
+        for end, ref in (("a", media[0]), ("b", media[-1])):
+            row.update({k.replace("_x100", f"_to_{end}_x100"): v for k, v in
+                        property_metrics(grids, ref, bbox, effects).items()})
+        rows.append(row)
+    return media, rows
+
+
+def tile(images: Sequence[np.ndarray], columns: int, scale: float, gap: int = 2) -> np.ndarray:
+    """Linear (H, W, 3) images as one display picture in [0, 1], ``columns`` per row,
+    log-tonemapped with the common ``scale`` (so brightness compares across tiles)."""
+    h, w, _ = images[0].shape
+    rows = -(-len(images) // columns)
+    out = np.ones((rows * (h + gap) - gap, columns * (w + gap) - gap, 3))
+    for i, img in enumerate(images):
+        r, c = divmod(i, columns)
+        out[r * (h + gap):r * (h + gap) + h, c * (w + gap):c * (w + gap) + w] = display(img,
+                                                                                      scale)
+    return out
+
+
+def white_of(real: torch.Tensor) -> float:
+    """A column's white: the median over its real images (N, H, W, 3) of each image's
+    largest value. The typical image's brightest pixel, so that the few views with the sun
+    in them (100x brighter at tiny) do not darken everything else."""
+    return float(real.amax(dim=(1, 2, 3)).median().clamp_min(1e-6))
+
+
+def export_medium(folder: Path, grids: Mapping, bbox: torch.Tensor, effects: dict,
+                  mitsuba: bool) -> None:
+    """``medium_grids.npz`` and (``mitsuba``) ``volumes/`` for one medium."""
+    from nrt.data import mitsuba_backend
+
+    folder.mkdir(parents=True, exist_ok=True)
+    save_property_grids(folder / MEDIUM_GRIDS_FILE, grids, bbox)
+    if mitsuba:
+        mi = mitsuba_backend.select_variant("auto")
+        mitsuba_backend.write_medium_files(mi, folder / "volumes", grids, bbox, effects)
+
+
+def _fid_crop(settings: SampleSettings, cameras: SceneDataset) -> int:
+    side = min(cameras.intrinsics.width, cameras.intrinsics.height)
+    crop = settings.fid_crop or max(MIN_CROP, side // 2)
+    if crop > side:
+        raise NrtError(f"fid.crop={crop} does not fit the family's images of {side} pixels: "
+                       f"choose fid.crop <= {side} (null: half the image).")
+    return crop
+
+
+def make_fid(settings: SampleSettings, cameras: SceneDataset, white: float = 1.0) -> FID:
+    """The FID metric of ``settings`` (crop, crops per image); errors name nrt-weights."""
+    return FID(crop=_fid_crop(settings, cameras), n_crops=settings.fid_n_crops, white=white,
+               seed=settings.seed)
+
+
+def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSettings,
+                 out_dir: Path, fid: FID | None) -> SampleResult:
+    """Steps 1-6 of the module docstring; writes into ``out_dir`` (``samples/``, pictures,
+    ``latent_gaussian.npz``) and returns what it measured (``fid`` None: no FID)."""
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    result = SampleResult()
+    codes = model.codes.detach().float().cpu()
+    if codes.shape[0] != len(data.family):
+        raise NrtError(f"The run holds {codes.shape[0]} codes but its family "
+                       f"'{data.family.root}' has {len(data.family)} members: sample the "
+                       "family the run was trained on.")
+    bbox = model.medium_bbox()
+    bbox = (bbox if bbox is not None else data.cameras.bbox).detach().float().cpu()
+    res = int(settings.resolution or data.truths[0]["g"].shape[0])
+    spp = int(settings.spp or (data.cameras.spec or {}).get("spp", 128))
+    frames = {col: sky_frames(data.cameras, env, settings.views)
+              for col, env in data.skies.items()}
+
+    result.gaussian = gauss = fit_latent_gaussian(codes, settings.shrinkage)
+    result.samples = samples = gauss.sample(settings.n, settings.seed)
+    np.savez(out_dir / "latent_gaussian.npz", codes=codes.numpy(),
+             mean=gauss.mean.numpy(), cov=gauss.cov.numpy(), shrinkage=gauss.shrinkage,
+             samples=samples.numpy(), names=np.array(model.member_names()))
+
+    renders: dict[str, list[np.ndarray]] = {col: [] for col in frames}
+    for i, code in enumerate(samples):
+        grids = decode(model, code, res, f"sample {i}")
+        folder = out_dir / "samples" / f"sample{i:03d}"
+        export_medium(folder, grids, bbox, data.effects, settings.export_mitsuba)
+        images = render_medium(grids, data, frames, spp, seed=1 + i)
+        for col, stack in images.items():
+            renders[col].append(stack)
+            for frame, img in zip(frames[col], stack, strict=True):
+                if settings.export_exr:
+                    write_exr(folder / f"{data.skies[col]}_view{frame:03d}.exr", img)
+    timings["decode_render_export_s"] = time.perf_counter() - start
+
+    t0 = time.perf_counter()
+    result.members = reconstruction(model, data, bbox, res)
+    for key in result.members[0]:
+        if key.startswith("mse_"):
+            result.metrics[f"recon_{key}"] = float(np.mean([r[key] for r in result.members]))
+    timings["reconstruction_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    reals = {col: real_images(data, env, settings.fid_real_views)
+             for col, env in data.skies.items()}
+    if fid is not None:
+        truth_renders = {col: [] for col in frames}
+        if settings.fid_truth_reference:
+            for k, truth in enumerate(data.truths):
+                for col, stack in render_medium(truth, data, frames, spp,
+                                                seed=1 + settings.n + k).items():
+                    truth_renders[col].append(stack)
+            # n media, the members in turn: the samples' image and crop counts
+            truth_renders = {col: [stacks[i % len(stacks)] for i in range(settings.n)]
+                             for col, stacks in truth_renders.items()}
+        for col, real in reals.items():
+            fid.white = white_of(real)
+            fake = torch.as_tensor(np.concatenate(renders[col]))
+            result.metrics[f"fid_{col}_illumination"] = fid_score(fid, real, fake)
+            if truth_renders[col]:
+                truth_fake = torch.as_tensor(np.concatenate(truth_renders[col]))
+                fid.reset(real=False)
+                fid.update(truth_fake, real=False)
+                result.metrics[f"fid_{col}_illumination_truth"] = float(fid.compute())
+            result.metrics[f"fid_{col}_real_crops"] = float(fid.count(True))
+            result.metrics[f"fid_{col}_sample_crops"] = float(len(fake) * fid.n_crops)
+        result.metrics["fid_crop"] = float(fid.crop)
+    timings["fid_s"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    pair = (tuple(settings.interpolate_members) if settings.interpolate_members is not None
+            else farthest_pair(codes))
+    strip, result.interpolation = interpolation(model, pair, settings.interpolate_steps, res,
+                                                data.effects, bbox)
+    strip_rows = []
+    for col in frames:  # a row per sky, each with its own white
+        images = [render_frames(g, data.effects, data.cameras, frames[col][:1], spp,
+                                seed=10_000 + j)[0] for j, g in enumerate(strip)]
+        row = tile(images, len(images), float(np.log1p(white_of(reals[col]))))
+        strip_rows += [row, np.ones((2, row.shape[1], 3))]
+    result.pictures["interpolation"] = np.concatenate(strip_rows[:-1], 0)
+    for col in frames:
+        shown = [stack[0] for stack in renders[col][:settings.picture_max_samples]]
+        result.pictures[f"samples_{data.skies[col]}"] = tile(
+            shown, int(np.ceil(np.sqrt(len(shown)))), float(np.log1p(white_of(reals[col]))))
+    for name, picture in result.pictures.items():
+        save_png(out_dir / f"{name}.png", picture)
+    timings["interpolation_pictures_s"] = time.perf_counter() - t0
+    result.metrics["interpolation_member_a"], result.metrics["interpolation_member_b"] = (
+        float(pair[0]), float(pair[1]))
+    result.metrics.update({"n_samples": float(settings.n), "n_members": float(len(codes)),
+                           "latent_dim": float(codes.shape[1]),
+                           "gaussian_shrinkage": gauss.shrinkage, "resolution": float(res),
+                           "spp": float(spp), **timings,
+                           "wall_s": time.perf_counter() - start})
+    return result

@@ -1,0 +1,69 @@
+"""A grid decoder conditioned on a latent code: ``(x, z) -> MLP([f(x), z])``.
+
+The generative stage 2 (:mod:`nrt.modules.stages.generative_rte`) conditions its medium and its
+light field on a member's latent code z by concatenation (the DeepSDF manner): ``f(x)`` are
+``features`` channels trilinear on a cell-centred grid over [-1, 1]^3, shared by all codes,
+and a small MLP maps ``[f(x), z]`` to the outputs (the medium's exponents and logits, or the
+light's SH coefficients). The MLP's output layer starts at zero, so every code starts from
+the plain component's start (zero modulation, zero scattered light).
+
+The stages read the decoder on cells (:meth:`LatentGridDecoder.on_cells`: the outputs at
+the cell centres of an R^3 grid, then trilinear between them, as the single-scene voxel
+grids are read). The feature grid is the parameter ``values``, so the coarse-to-fine
+schedule of :mod:`nrt.modules.fields.coarse_to_fine` resamples it as it resamples a plain grid.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from nrt.errors import ConfigError
+from nrt.modules.fields.ea_field import mlp
+from nrt.physics.volume import resample_cells, sample_grid
+
+
+class LatentGridDecoder(nn.Module):
+    """``out_dim`` values at unit-box points (..., 3) under a code (..., ``latent_dim``) from
+    ``features`` grid channels on ``resolution``^3 cells and an MLP of ``layers`` hidden ReLU
+    layers of width ``hidden``. ``in_dim`` must be 3 (the medium's modulation factory
+    signature, :class:`~nrt.modules.fields.medium.NeuralMedium`)."""
+
+    def __init__(self, in_dim: int, out_dim: int, latent_dim: int, resolution: int = 8,
+                 features: int = 16, hidden: int = 64, layers: int = 1,
+                 init_std: float = 0.1):
+        super().__init__()
+        if in_dim != 3:
+            raise ConfigError(f"a latent grid decoder takes 3-d points, got in_dim={in_dim}.")
+        for name, value in (("latent_dim", latent_dim), ("resolution", resolution),
+                            ("features", features), ("hidden", hidden), ("layers", layers)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"latent grid decoder: {name}={value} must be a whole "
+                                  "number >= 1 (mode.latent, model.light_field, model.medium).")
+        self.latent_dim = latent_dim
+        self.values = nn.Parameter(torch.randn(resolution, resolution, resolution, features)
+                                   * init_std)
+        self.net = mlp(features + latent_dim, hidden, out_dim, layers)
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+        self.register_buffer("unit_box", torch.tensor([[-1.0] * 3, [1.0] * 3]))
+
+    def _decode(self, features: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        if code.shape[-1] != self.latent_dim:
+            raise ValueError(f"this decoder takes codes of dimension {self.latent_dim}, got "
+                             f"{tuple(code.shape)}.")
+        code = code.to(features).expand(*features.shape[:-1], self.latent_dim)
+        return self.net(torch.cat((features, code), -1))
+
+    def forward(self, unit: torch.Tensor, code: torch.Tensor) -> torch.Tensor:
+        """Outputs (..., out_dim) at points of the unit box [-1, 1]^3 (..., 3) under ``code``
+        (..., d_z) or one code (d_z,)."""
+        return self._decode(sample_grid(self.values, unit, self.unit_box), code)
+
+    def on_cells(self, resolution: int, code: torch.Tensor) -> torch.Tensor:
+        """Outputs (R, R, R, out_dim) at the centres of ``resolution``^3 cells, ``[z, y, x]``,
+        under one code (d_z,): the features resampled to those cells, then the MLP."""
+        features = self.values
+        if features.shape[0] != resolution:
+            features = resample_cells(features, resolution)
+        return self._decode(features, code)

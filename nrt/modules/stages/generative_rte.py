@@ -1,0 +1,272 @@
+"""Stage 2 in generative mode (``nrt-train stage=rte mode=generative scene=family
+init.ea_ckpt=<generative EA run>``): the split formulation of
+:mod:`nrt.modules.stages.rte_split` over the K members of a scene family, conditioned on one
+latent code per member (the auto-decoder of :mod:`nrt.modules.stages.generative_ea`, continued).
+
+- **Codes.** ``codes`` (K, d_z) start from the generative EA run's and stay optimisable
+  (their own Adam group, ``latent_lr``, under the L2 prior ``latent_prior_weight * mean_k
+  |z_k|^2``). The prior acts only while the photo objective does: alone (during the light
+  field's warm-up) Adam would scale its tiny gradient up to steps of ``latent_lr`` and pull
+  every code to the origin, erasing the members' differences (measured: 100 such steps
+  made the four tiny members' media alike).
+- **Medium** (:class:`~nrt.modules.fields.voxel_medium.LatentVoxelMedium`): member k's density is
+  the frozen EA field evaluated under z_k on the voxels (the field's hash features at the
+  cell centres are computed once; its modulation by z and its density MLP run every step,
+  so the density follows the code, with gradient); its modulation (sigma_t exponents and
+  albedo logits, ``parametrization=extinction``) is an MLP of shared grid features of x
+  (coarse to fine) concatenated with z_k.
+- **Light** (:class:`~nrt.modules.fields.sh_light_field.LatentSHGridLightField`): the scattered
+  light's SH coefficients are an MLP of shared grid features of x concatenated with z_k;
+  each member keeps its own cache of the uncollided light, all under the family's one
+  training sky (shared suns and sun-less sky).
+- **Objectives**, as in the single-scene split stage: the photo objective trains the medium
+  and the codes (each ray rendered through its member's medium); the transport objective
+  trains the light field, which reads the codes without gradient, at collocation points
+  that each carry a member index (split evenly over the members). Each objective is the
+  mean over all rays or points of the family.
+
+Validation scores each member's held-out views (``val/psnr_member<k>``, by
+:class:`~nrt.callbacks.HeldOutImageMetrics`) and its medium against its own ground truth
+(``val/mse_<property>_x100_member<k>``, by :class:`~nrt.callbacks.PropertyMetrics`), and
+their means. For other tools (``nrt-sample``) the stage decodes a medium from any code
+(:meth:`GenerativeRTEModule.property_grids_for`); the export writes every member's
+``members/<name>/medium_grids.npz`` and the codes (``latents.npz``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
+from nrt.errors import ConfigError, DatasetError
+from nrt.modules.fields.ea_field import EAField
+from nrt.modules.fields.medium import property_grids
+from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
+from nrt.modules.stages.components import as_factory, factory_config
+from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
+from nrt.modules.stages.rte_split import RAY_KEYS, SplitRTEModule, detached
+from nrt.modules.stages.stage import check_learning_rates
+from nrt.physics.volume import cell_centres
+
+log = logging.getLogger(__name__)
+
+FITS = ("Generative stage 2 (stage=rte mode=generative) takes the latent light field and "
+        "medium that conf/mode_stage/generative_rte.yaml sets")
+
+
+def member_mean(members: torch.Tensor,
+                loss_of: Callable[[int, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """The mean over items of a loss computed member by member: ``sum_k (n_k / n)
+    loss_of(k, mask_k)``, with ``members`` (n,) each item's member and ``loss_of`` a mean
+    over the items of ``mask_k``."""
+    total = torch.zeros(())
+    for k in members.unique().tolist():
+        mask = members == k
+        total = total + mask.float().mean() * loss_of(k, mask)
+    return total
+
+
+class GenerativeRTEModule(SplitRTEModule):
+    """The split stage 2 over the ``members`` (K) of a family, conditioned on codes of
+    ``latent_dim`` (d_z) values. ``ea_field`` (the EA field's config) and ``member_info``
+    (``name``, ``seed`` of each member) come from the EA checkpoint (``density.ea_ckpt``)
+    when the run starts, and from the stage's own checkpoint when it is loaded; the rest of
+    the arguments are :class:`~nrt.modules.stages.rte_split.SplitRTEModule`'s."""
+
+    LIGHT_PROTOCOL = LatentScatteredLightField
+    MEDIUM_PROTOCOL = LatentVoxelisedMedium
+    FITS = FITS
+
+    def __init__(self, members: int, latent_dim: int, light_field: Callable | dict,
+                 medium: Callable | dict, latent_prior_weight: float = 1e-4,
+                 latent_lr: float = 1e-2, ea_field: dict | None = None,
+                 member_info: list[dict] | None = None, **kwargs):
+        for key, value in (("scene.family.members", members), ("mode.latent.dim", latent_dim)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"{key}={value}: must be a whole number >= 1.")
+        check_learning_rates(latent_lr, "model.latent_lr")
+        density = kwargs.get("density") or {}
+        if density.get("source") != "ea":
+            raise ConfigError(f"init.source={density.get('source')}: stage 2 in generative mode "
+                              "starts from a generative EA run (init=ea, init.ea_ckpt=<its "
+                              "checkpoints/last.ckpt>); forward mode and init=none are for "
+                              "single scenes.")
+        # the hyperparameters record the components' configs: a checkpoint pickles no code
+        light_field = factory_config(as_factory(light_field, "light_field"))
+        medium = factory_config(as_factory(medium, "medium"))
+        super().__init__(light_field=light_field, medium=medium, **kwargs)
+        if ea_field is None:  # a fresh run: the EA run's field, codes and members
+            ea_field, field, codes, info = load_generative_ea(density.get("ea_ckpt"))
+            if tuple(codes.shape) != (members, latent_dim):
+                raise ConfigError(
+                    f"init.ea_ckpt='{density.get('ea_ckpt')}' holds {codes.shape[0]} codes of "
+                    f"dimension {codes.shape[1]}, but this run has scene.family.members="
+                    f"{members} and mode.latent.dim={latent_dim}; start from an EA run of the "
+                    "same family and mode settings.")
+            member_info = None if info is None else \
+                [{"name": str(m["name"]), "seed": int(m["seed"])} for m in info]
+            self.hparams.update(ea_field=ea_field, member_info=member_info)
+        else:  # loaded from this stage's checkpoint: the values follow
+            field, codes = EAField(**ea_field), torch.zeros(members, latent_dim)
+        self.ea = field.requires_grad_(False)
+        self._encoding: torch.Tensor | None = None
+        self.codes = nn.Parameter(codes.clone())
+
+    # ------------------------------------------------------------- the family
+    def member_names(self) -> list[str]:
+        """The members' scene names, in the order of ``codes``' rows (``member<k>`` before a
+        run whose EA run recorded none has seen its family)."""
+        info = self.hparams.member_info
+        return [m["name"] for m in info] if info else \
+            [f"member{k}" for k in range(self.codes.shape[0])]
+
+    def member_seeds(self) -> list[int]:
+        info = self.hparams.member_info
+        return [int(m["seed"]) for m in info] if info else list(range(self.codes.shape[0]))
+
+    def setup(self, stage: str) -> None:
+        dm = self.datamodule()
+        if dm is not None:
+            names = [m.name for m in dm.family.members]
+            if self.hparams.member_info is None and len(names) == self.codes.shape[0]:
+                self.hparams.member_info = [{"name": m.name, "seed": m.seed}
+                                            for m in dm.family.members]
+            if names != self.member_names():
+                raise DatasetError(f"Family '{dm.dataset_dir}' has members {names}, but the "
+                                   f"EA run this stage starts from was trained on "
+                                   f"{self.member_names()}; train both stages on one family.")
+            self.ea.bbox.copy_(dm.bbox.to(self.ea.bbox))
+        super().setup(stage)
+        self._encoding = None  # at the box the datamodule set
+
+    def bake_density(self) -> None:
+        """Forget the EA features at the medium's cells (:meth:`ea_encoding` computes them
+        again for the box the datamodule set)."""
+        self._encoding = None
+
+    def ea_encoding(self) -> torch.Tensor:
+        """The frozen EA field's hash features (R^3, F) at the centres of the medium's
+        ``density_resolution``^3 cells, ``[z, y, x]``; computed once."""
+        if self._encoding is None:
+            pts = cell_centres(self.medium.density_resolution, self.medium.bbox).reshape(-1, 3)
+            with torch.no_grad():
+                self._encoding = torch.cat([self.ea.encode(pts[i:i + 65536])
+                                            for i in range(0, len(pts), 65536)])
+        return self._encoding
+
+    def density_for(self, code: torch.Tensor) -> torch.Tensor:
+        """The EA density under ``code`` (d_z,) on the medium's cells (R, R, R, 1), >= 0,
+        differentiable in the code."""
+        r = self.medium.density_resolution
+        dens = self.ea.density_of_encoding(self.ea_encoding(), code)
+        return dens.reshape(r, r, r, 1).clamp_min(0.0)
+
+    def member_scene(self, member: int):
+        """Member ``member``'s medium (voxels, differentiable in the decoder and the code) and
+        light (the code without gradient: the light field does not move the codes)."""
+        code = self.codes[member]
+        return (self.medium.voxels_for(self.density_for(code), code),
+                self.light.member(member, code.detach()))
+
+    # --------------------------------------------------------------- training
+    def param_groups(self) -> list[dict]:
+        return [*super().param_groups(),
+                {"params": [self.codes], "lr": self.hparams.latent_lr, "weight_decay": 0.0}]
+
+    def latent_prior(self) -> torch.Tensor:
+        """``latent_prior_weight * mean_k |z_k|^2``: the codes' Gaussian prior, as a loss."""
+        return self.hparams.latent_prior_weight * self.codes.square().sum(-1).mean()
+
+    def mixed_objective(self, name: str, batch: dict, scenes: list) -> torch.Tensor:
+        """Objective ``name`` over the members: the photo rays grouped by their ``member``,
+        the transport points split evenly (point i belongs to member i mod K)."""
+        s = self.hparams.samples
+        if name == "transport":
+            n = int(s["transport_points"])
+            members = torch.arange(n) % len(scenes)
+            return member_mean(members, lambda k, mask: self.transport_objective(
+                *scenes[k], int(mask.sum())))
+        n = int(s["photo_rays"])
+        rays = {key: batch[key][:n] for key in RAY_KEYS}
+        return member_mean(batch["member"][:n].cpu(), lambda k, mask: self.photo_objective(
+            *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))
+
+    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
+        opt = self.optimizers()
+        self._update_resolution()
+        start = time.perf_counter()
+        due = self.uncollided_due()
+        scenes = [self.member_scene(k) for k in range(self.codes.shape[0])]
+        if due:
+            for medium, light in scenes:
+                self.refresh_uncollided(detached(medium), light)
+            self._uncollided_fresh = True
+        self.log("time/step_uncollided_s", time.perf_counter() - start)
+        opt.zero_grad(set_to_none=True)
+        total = self.backward_objectives(lambda name: self.mixed_objective(name, batch, scenes))
+        prior = self.latent_prior()
+        if "photo" in self.active_weights():  # the codes' regulariser, with their data term
+            self.manual_backward(prior)
+            total = total + prior.detach()
+        self.log("train/latent_prior", prior.detach())
+        self.log("train/latent_norm", self.codes.detach().norm(dim=-1).mean())
+        self.log("train/medium_resolution", float(self.medium.resolution))
+        opt.step()
+        self.lr_schedulers().step()
+        return torch.as_tensor(total)
+
+    # ------------------------------------------------------------- validation
+    def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
+        """The predictions of a member's held-out view through its own medium and light."""
+        with torch.no_grad():
+            medium, light = self.member_scene(int(batch["member"]))
+            return self.render_pixels(batch["origins"], batch["dirs"], batch["background"],
+                                      medium, light)
+
+    @torch.no_grad()
+    def property_grids_for(self, code: torch.Tensor, resolution: int
+                           ) -> dict[str, torch.Tensor]:
+        """The medium decoded from any code (d_z,) on ``resolution``^3 cells, in the layout
+        of :meth:`~nrt.modules.stages.stage.Stage.property_grids`, on the CPU: the EA density under
+        the code on the medium's cells, modulated under the code, as in training."""
+        code = code.to(self.codes)
+        voxels = self.medium.voxels_for(self.density_for(code), code).detached()
+        grids = property_grids(voxels, resolution)
+        return {k: v.cpu() for k, v in grids.items()}
+
+    def member_property_grids(self, member: int, resolution: int) -> dict[str, torch.Tensor]:
+        """Member ``member``'s medium, decoded from its own code."""
+        return self.property_grids_for(self.codes[member].detach(), resolution)
+
+    def property_grids(self, resolution: int) -> None:
+        """None: a family has one medium per member (:meth:`member_property_grids`)."""
+        return None
+
+    def member_ground_truths(self) -> list[dict[str, torch.Tensor] | None]:
+        dm = self.datamodule()
+        return dm.member_ground_truths if dm is not None else []
+
+    # ------------------------------------------------------------------ export
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """Write ``members/<name>/medium_grids.npz`` for every member (at
+        ``property_resolution``, default its ground truth's, else 64) and ``latents.npz``
+        (``codes``, ``names``, ``seeds``) into ``run_dir``."""
+        run_dir = Path(run_dir)
+        truths = [gt for gt in self.member_ground_truths() if gt is not None]
+        fallback = int(truths[0]["g"].shape[0]) if truths else 64
+        res = int(self.hparams.property_resolution or fallback)
+        exports = {}
+        for k, name in enumerate(self.member_names()):
+            path = run_dir / MEMBERS_DIR / name / MEDIUM_GRIDS_FILE
+            path.parent.mkdir(parents=True, exist_ok=True)
+            exports[f"medium_grids_{name}"] = str(save_property_grids(
+                path, self.member_property_grids(k, res), self.medium.bbox))
+        exports["latents"] = save_latents(run_dir, self.codes, self.member_names(),
+                                          self.member_seeds())
+        return exports
