@@ -57,18 +57,31 @@ MODELS = [(s,) for s in options("stage")] + [
 COMBINATIONS = [(model, scene, preset) for model in MODELS
                 for scene in options("scene") if scene != "family"
                 for preset in options("preset")] + [
-    (("ea", "mode=generative"), "family", preset) for preset in options("preset")]
+    (("ea", "mode=generative"), "family", preset) for preset in options("preset")] + [
+    (("rte", "mode=generative"), "family", preset) for preset in options("preset")]
 
 
 @pytest.fixture(scope="module")
-def ea_checkpoint(tmp_path_factory) -> str:
-    """A stage-1 checkpoint (untrained, tiny) for the stages that start from one."""
-    cfg = compose_config("train", ["stage=ea", "preset=tiny"])
-    model = hydra.utils.instantiate(cfg.model, _convert_="all")
-    path = tmp_path_factory.mktemp("ea") / "last.ckpt"
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": dict(model.hparams),
-                "pytorch-lightning_version": lightning.__version__}, path)
-    return str(path)
+def ea_checkpoint(tmp_path_factory):
+    """Stage-1 checkpoints (untrained) for the stages that start from one: ``(preset,
+    generative) -> path``; a single-scene one at ``tiny`` serves every preset, a generative
+    one holds the family's K codes of its preset."""
+    saved: dict[tuple[str, bool], str] = {}
+
+    def make(preset: str, generative: bool) -> str:
+        key = (preset if generative else "tiny", generative)
+        if key not in saved:
+            extra = ["mode=generative", "scene=family"] if generative else []
+            cfg = compose_config("train", ["stage=ea", f"preset={key[0]}", *extra])
+            model = hydra.utils.instantiate(cfg.model, _convert_="all")
+            path = tmp_path_factory.mktemp("ea") / "last.ckpt"
+            torch.save({"state_dict": model.state_dict(),
+                        "hyper_parameters": dict(model.hparams),
+                        "pytorch-lightning_version": lightning.__version__}, path)
+            saved[key] = str(path)
+        return saved[key]
+
+    return make
 
 
 @pytest.mark.slow
@@ -76,12 +89,14 @@ def ea_checkpoint(tmp_path_factory) -> str:
                          ids=[f"{' '.join(m)}-{s}-{p}" for m, s, p in COMBINATIONS])
 def test_every_stage_scene_and_preset_composes_and_builds(model, scene, preset,
                                                           ea_checkpoint):
-    """Each combination of conf/stage, conf/scene and conf/preset (and both stage-2
-    formulations) passes the checks nrt-train makes before any data and builds its stage,
-    as nrt-train does once the EA checkpoint is resolved (~0.5 s each)."""
+    """Each combination of conf/stage, conf/scene and conf/preset (both stage-2
+    formulations; the generative mode's stages on the family) passes the checks nrt-train
+    makes before any data and builds its stage, as nrt-train does once the EA checkpoint
+    is resolved (~0.5 s each)."""
     stage, *rest = model
+    ckpt = ea_checkpoint(preset, "mode=generative" in rest)
     cfg = compose_config("train", [f"stage={stage}", f"scene={scene}", f"preset={preset}",
-                                   f"init.ea_ckpt={ea_checkpoint}", *rest])
+                                   f"init.ea_ckpt={ckpt}", *rest])
     check_budget(cfg)
     check_mode(cfg)
     check_arguments(cfg)
