@@ -109,7 +109,7 @@ def check_mode(cfg: DictConfig) -> None:
     if not family:
         raise ConfigError(f"mode=generative learns a distribution over a family of scenes, "
                           f"but scene={cfg.scene.name} is one scene (it has no scene.family). "
-                          "Add scene=family (README \"Scene families\"), or drop "
+                          "Add scene=family (docs/scenes.md, \"Scene families\"), or drop "
                           "mode=generative to train this scene alone.")
     if cfg.stage.name not in GENERATIVE_STAGES:
         raise ConfigError(f"mode=generative is built for stage=ea and stage=rte; stage="
