@@ -41,8 +41,14 @@ MISTAKES = [  # (command, overrides, what the message must say)
 ]
 
 
-@pytest.mark.parametrize(("command", "overrides", "needle"), MISTAKES,
-                         ids=[" ".join(m[1]) for m in MISTAKES])
+# Each case starts a Python process (~6 s on 2 cores): these few stay in the fast tier, the
+# rest (the same code paths with other keys) run in the slow tier.
+FAST_MISTAKES = {("foo=1",), ("stage=rte", "model.lr=0.01"), ("scene.nope=1",)}
+
+
+@pytest.mark.parametrize(("command", "overrides", "needle"), [
+    pytest.param(*m, marks=() if m[1] in FAST_MISTAKES else pytest.mark.slow) for m in MISTAKES
+], ids=[" ".join(m[1]) for m in MISTAKES])
 def test_config_mistakes_end_in_one_paragraph_and_status_2(tmp_path, command, overrides,
                                                            needle):
     out = tmp_path / "out"
@@ -115,6 +121,8 @@ def multirun(out: Path, data_root: Path, *overrides: str) -> subprocess.Complete
                           timeout=600)
 
 
+# The matching rule is unit-tested in the fast tier; this one starts a sweep.
+@pytest.mark.slow
 def test_resume_in_a_multirun_without_earlier_jobs_is_a_clear_error(tmp_path):
     """``nrt-train -m ... resume=true`` where no earlier job has the overrides: the first
     job says so (and how to continue with other values) before any data, status 2, and

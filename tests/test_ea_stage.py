@@ -86,6 +86,7 @@ def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
     assert list(tmp_path.iterdir()) == []  # no empty run folder left behind
 
 
+@pytest.mark.slow  # starts a sweep (~6 s); the single-run clean-up is in the fast tier
 def test_a_failed_multirun_start_leaves_no_folder(tmp_path):
     """``nrt-train -m``: the first job's start fails (no EA checkpoint), the sweep ends with
     ``nrt: error:`` and status 2, and neither the job's folder nor the sweep's remains."""

@@ -109,11 +109,12 @@ def test_lpips_missing_weights_is_a_clear_cli_error(tmp_path, tiny_dataset):
 
 @pytest.mark.parametrize(("overrides", "needle"), [
     ((), "needs run=<run folder"),
-    (("run={tmp}/missing/run",), "does not exist"),
-    (("run={tmp}",), "is not a run folder of nrt-train"),
-    (("grids={tmp}/missing.npz",), "is not a file"),
-    (("grids={data}/ground_truth.npz", "scene.effects.phase=nope"), "effects.phase"),
-])
+    pytest.param(("run={tmp}/missing/run",), "does not exist", marks=pytest.mark.slow),
+    pytest.param(("run={tmp}",), "is not a run folder of nrt-train", marks=pytest.mark.slow),
+    pytest.param(("grids={tmp}/missing.npz",), "is not a file", marks=pytest.mark.slow),
+    pytest.param(("grids={data}/ground_truth.npz", "scene.effects.phase=nope"), "effects.phase",
+                 marks=pytest.mark.slow),
+])  # each case starts a process (~6 s): one in the fast tier, the rest in the slow tier
 def test_eval_input_errors_come_before_metric_setup(tmp_path, tiny_dataset, overrides, needle):
     """Reported as what they are even when the LPIPS weights are missing."""
     overrides = [o.format(tmp=tmp_path, data=tiny_dataset) for o in overrides]

@@ -332,6 +332,8 @@ def test_bad_starts_are_refused_before_any_data(tmp_path, short_ea, family_dir):
             hydra.utils.instantiate(cfg.model, _convert_="all")
 
 
+# The same refusal is checked in-process in the fast tier; this one starts a process.
+@pytest.mark.slow
 def test_a_single_scene_checkpoint_exits_2_before_any_data(tmp_path):
     """Through the real CLI: one ``nrt: error:`` paragraph, status 2, nothing rendered and
     no run folder left behind."""
