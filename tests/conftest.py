@@ -24,7 +24,7 @@ from nrt.cli.common import CONFIG_DIR, register_resolvers
 from nrt.data.render import ensure_dataset
 
 
-def compose_config(config_name: str = "data", overrides: list[str] | tuple = ()) -> DictConfig:
+def compose_config(config_name: str = "dataset", overrides: list[str] | tuple = ()) -> DictConfig:
     """``conf/<config_name>.yaml`` with ``overrides``, composed as the CLI composes it."""
     register_resolvers()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
@@ -41,7 +41,7 @@ def scene_config() -> Callable[..., dict]:
 
     def make(*overrides: str) -> dict:
         if overrides not in _scenes:
-            cfg = compose_config("data", ["preset=tiny", *overrides])
+            cfg = compose_config("dataset", ["preset=tiny", *overrides])
             _scenes[overrides] = OmegaConf.to_container(cfg.scene, resolve=True)
         return copy.deepcopy(_scenes[overrides])
 
@@ -59,7 +59,7 @@ def tiny_dataset(tiny_output_dir) -> Path:
     """Folder of the default scene's ``tiny`` dataset (16 train + 4 test views of 32x32
     under one sky), rendered with Mitsuba once per session. Treat it as read-only: tests
     that corrupt a dataset copy it first."""
-    cfg = compose_config("data", ["preset=tiny", f"paths.output_dir={tiny_output_dir}"])
+    cfg = compose_config("dataset", ["preset=tiny", f"paths.output_dir={tiny_output_dir}"])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
     folder = ensure_dataset(scene, cfg.paths.data_dir, progress=False)
     assert (folder / "scene.json").is_file(), folder

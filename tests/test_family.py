@@ -141,6 +141,6 @@ def test_members_follow_the_seed_and_the_two_skies(scene_config):
 
 def test_cpu_and_paper_presets_set_k():
     for preset, k in (("cpu", 16), ("paper", 50)):
-        cfg = compose_config("data", [f"preset={preset}", "scene=family"])
+        cfg = compose_config("dataset", [f"preset={preset}", "scene=family"])
         assert cfg.scene.family.members == k
 

@@ -162,7 +162,7 @@ def test_white_ignores_the_few_views_with_the_sun():
 # ------------------------------------------------------------------ sampling a family
 @pytest.fixture(scope="module")
 def family_data(family_dir) -> FamilyData:
-    cfg = compose_config("data", list(SCENE))
+    cfg = compose_config("dataset", list(SCENE))
     return load_family_data(load_family(family_dir),
                             OmegaConf.to_container(cfg.scene.effects, resolve=True))
 

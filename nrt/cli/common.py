@@ -100,10 +100,11 @@ def _fail(exc: NrtError) -> NoReturn:
     sys.exit(2)
 
 
-def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
+def run_app(task: Callable[[DictConfig], object], config_name: str,
+            command: str | None = None) -> None:
     """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml`` (the command
-    ``nrt-<config_name>``); config mistakes and :class:`NrtError` end in ``nrt: error:``
-    with status 2."""
+    ``command``, by default ``nrt-<config_name>``); config mistakes and :class:`NrtError`
+    end in ``nrt: error:`` with status 2."""
     if not CONFIG_DIR.is_dir():
         sys.exit(f"nrt: config folder '{CONFIG_DIR}' not found. Install nrt from its source "
                  "checkout in editable mode (pip install -e .), which keeps conf/ beside nrt/.")
@@ -111,7 +112,7 @@ def run_app(task: Callable[[DictConfig], object], config_name: str) -> None:
     tune_allocator()
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch starts OpenMP
     started = time.time()
-    command = f"nrt-{config_name}"
+    command = command or f"nrt-{config_name}"
     # Hydra hands us what fails while it composes the config only with HYDRA_FULL_ERROR
     # set. The task itself runs with the user's setting, so that Hydra reports a bug in it
     # as before; a user who set HYDRA_FULL_ERROR sees Hydra's own errors.

@@ -27,7 +27,7 @@ def render_task(cfg: DictConfig) -> str:
 
 
 def main() -> None:
-    run_app(render_task, "data")
+    run_app(render_task, "dataset", command="nrt-data")
 
 
 if __name__ == "__main__":
