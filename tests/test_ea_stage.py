@@ -1,12 +1,11 @@
 """Stage 1 (EA) end to end: the real CLI on the tiny preset, kill + resume, and hard
 cases (dense and near-empty media) that must never put NaN or Inf in the parameters."""
 
+import math
 import signal
 import subprocess
 import time
 from pathlib import Path
-
-import math
 
 import lightning as L
 import numpy as np
