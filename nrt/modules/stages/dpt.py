@@ -10,9 +10,10 @@ replay backpropagation), not the differential ratio tracking of the paper's base
   channel of sigma_t, a neutral albedo (``init_albedo``), g = 0.
 - Each step renders one random training view at ``spp`` with gradients; the loss is the
   MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
-  Dr.Jit; ``dr.backward`` gives the grid gradients, which become the ``.grad`` of torch
-  parameters (non-finite entries counted and zeroed), and torch's Adam steps, its rate
-  decaying exponentially to ``lr_final_factor`` of ``lr`` over the run. Values are
+  Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.log_image_loss`); ``dr.backward`` gives
+  the grid gradients, which become the ``.grad`` of torch parameters (non-finite entries
+  counted and zeroed), and torch's Adam steps, its rate decaying exponentially to
+  ``lr_final_factor`` of ``lr`` over the run. Values are
   clamped after each step: ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
 - Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
   ``upsample_at`` of the run (of its steps, or of ``budget_s`` when that comes first)
