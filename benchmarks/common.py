@@ -1,6 +1,14 @@
-"""Helpers shared by the benchmarks: compose nrt's real configs outside a Hydra app."""
+"""Helpers shared by the benchmarks: nrt's real configs composed outside a Hydra app, and
+nrt's commands run through the real CLI with their runs and metrics found again."""
 
 from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
@@ -13,3 +21,53 @@ def compose_train(overrides: list[str]) -> DictConfig:
     register_resolvers()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose("train", overrides=overrides)
+
+
+def output_dir() -> Path:
+    """nrt's output folder (``NRT_OUTPUT_DIR``, else ``outputs``), absolute: its
+    ``datasets/`` is the dataset cache every benchmark run shares."""
+    return Path(os.environ.get("NRT_OUTPUT_DIR", "outputs")).resolve()
+
+
+def run_cli(command: str, args: list[str], out: Path) -> float:
+    """``python -m nrt.cli.<command> args`` writing its runs under ``out``; exits with the
+    command's error output when it fails. Returns its wall seconds (start-up included)."""
+    cmd = [sys.executable, "-m", f"nrt.cli.{command}", *args]
+    start = time.perf_counter()
+    proc = subprocess.run(cmd, env={**os.environ, "NRT_OUTPUT_DIR": str(out)},
+                          capture_output=True, text=True)
+    if proc.returncode != 0:
+        sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
+    return time.perf_counter() - start
+
+
+def train(stage: str, out: Path, preset: str, overrides: list[str],
+          logger: str = "[tensorboard,csv]") -> tuple[Path, float]:
+    """``nrt-train stage=<stage> preset=<preset>`` through the CLI, runs under ``out``, the
+    datasets from the shared cache (:func:`output_dir`); the new run folder and the wall
+    seconds."""
+    before = set(out.glob(f"*/{stage}/*"))
+    wall = run_cli("train", [f"stage={stage}", f"preset={preset}", f"logger={logger}",
+                             f"paths.data_dir={output_dir() / 'datasets'}",
+                             "trainer.enable_progress_bar=false", "render.progress=false",
+                             *overrides], out)
+    (run,) = set(out.glob(f"*/{stage}/*")) - before
+    return run, wall
+
+
+def newest_checkpoint(scene: str) -> Path | None:
+    """The last checkpoint of the newest EA run of ``scene`` under :func:`output_dir`."""
+    runs = sorted((output_dir() / scene / "ea").glob("*/checkpoints/last.ckpt"),
+                  key=lambda p: p.stat().st_mtime)
+    return runs[-1].resolve() if runs else None
+
+
+def metric_rows(run: Path) -> list[dict]:
+    """The rows of a run's CSV log (``csv/metrics.csv``)."""
+    with open(run / "csv" / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def series(run: Path, key: str) -> list[float]:
+    """Every logged value of metric ``key`` of a run, in order."""
+    return [float(r[key]) for r in metric_rows(run) if r.get(key)]

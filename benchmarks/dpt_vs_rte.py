@@ -16,10 +16,7 @@ table (which used an isotropic scene and differential ratio tracking).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,41 +24,31 @@ from pathlib import Path
 
 import yaml
 
+from benchmarks.common import newest_checkpoint, run_cli, series, train
+
 PAPER = {"DRT (paper)": (0.87, 4.06, 6.88, 43.3), "ours (paper)": (1.33, 1.66, 0.46, 30.5)}
 MANY_STEPS = 1_000_000  # the budget stops the run
 
 
-def run(cmd: list[str], out: Path) -> None:
-    proc = subprocess.run(cmd, env={**os.environ, "NRT_OUTPUT_DIR": str(out)},
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-
-
-def train(out: Path, stage: str, budget: float, args, extra: list[str]) -> Path:
-    data_dir = Path(os.environ.get("NRT_OUTPUT_DIR", "outputs")).resolve() / "datasets"
-    run([sys.executable, "-m", "nrt.cli.train", f"stage={stage}", f"preset={args.preset}",
-         f"paths.data_dir={data_dir}", "trainer.enable_progress_bar=false",
-         "render.progress=false", f"budget_s={budget}", f"budget.{stage}.steps={MANY_STEPS}",
-         f"init.ea_ckpt={args.ea_ckpt}", "logger=[tensorboard,csv]", *extra], out)
-    runs = sorted((out / "default" / stage).iterdir(), key=lambda p: p.stat().st_mtime)
-    return runs[-1]
+def train_for(out: Path, stage: str, budget: float, args) -> Path:
+    """``nrt-train stage=<stage>`` from ``args.ea_ckpt`` for ``budget`` training seconds
+    under ``out``; its run folder."""
+    return train(stage, out, args.preset, [f"budget_s={budget}",
+                                           f"budget.{stage}.steps={MANY_STEPS}",
+                                           f"init.ea_ckpt={args.ea_ckpt}"])[0]
 
 
 def evaluate(run_dir: Path, out: Path) -> dict:
-    run([sys.executable, "-m", "nrt.cli.eval", f"run={run_dir}", "metrics.lpips=false",
-         "relight.enabled=false"], out)
+    run_cli("eval", [f"run={run_dir}", "metrics.lpips=false", "relight.enabled=false"], out)
     latest = sorted(run_dir.glob("eval/*/metrics.json"))[-1]
     return json.loads(latest.read_text())["metrics"]
 
 
 def steps_taken(run_dir: Path) -> int | None:
-    """Training steps of a run (from its CSV log; None without one)."""
-    files = sorted(run_dir.glob("csv/**/metrics.csv"))
-    if not files:
+    """Training steps of a run (the last logged step of its CSV log; None without one)."""
+    if not (run_dir / "csv" / "metrics.csv").is_file():
         return None
-    with open(files[-1]) as f:
-        return max((int(r["step"]) for r in csv.DictReader(f) if r.get("step")), default=None)
+    return int(max(series(run_dir, "step"), default=0)) or None
 
 
 def learns_g(run_dir: Path) -> bool:
@@ -112,23 +99,21 @@ def main() -> None:
     args = parser.parse_args()
     out = Path(args.output or tempfile.mkdtemp(prefix="nrt_dpt_vs_rte_"))
     if args.ea_ckpt is None:
-        found = sorted(Path(os.environ.get("NRT_OUTPUT_DIR", "outputs")).glob(
-            "default/ea/*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
-        if not found:
+        found = newest_checkpoint("default")
+        if found is None:
             sys.exit("No EA checkpoint: run `nrt-train stage=ea` first or pass --ea-ckpt.")
-        args.ea_ckpt = str(found[-1].resolve())
+        args.ea_ckpt = str(found)
     start = time.perf_counter()
     if args.rte_run:
         rte = Path(args.rte_run)
         budget = json.loads((rte / "run.json").read_text())["final_metrics"]["time/wall_s"]
     else:
         budget = args.budget_s
-        rte = train(out, "rte", budget, args, [])
-    dpt = train(out, "dpt", budget, args, [])
+        rte = train_for(out, "rte", budget, args)
+    dpt = train_for(out, "dpt", budget, args)
     results = {"dpt (this run)": (dpt, evaluate(dpt, out)),
                "rte (this run)": (rte, evaluate(rte, out))}
-    run([sys.executable, "-m", "nrt.cli.report", str(rte), str(dpt), "--out",
-         str(out / "report")], out)
+    run_cli("report", [str(rte), str(dpt), "--out", str(out / "report")], out)
     print(f"\nEqual time: {budget:.0f} training seconds each, from {args.ea_ckpt}; "
           f"benchmark wall time {time.perf_counter() - start:.0f} s")
     print_table(results)

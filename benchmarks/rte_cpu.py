@@ -16,13 +16,10 @@ in one run.
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
+
+from benchmarks.common import metric_rows, series, train
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
@@ -32,47 +29,29 @@ def hms(seconds: float) -> str:
     return f"00:{s // 3600:02d}:{s % 3600 // 60:02d}:{s % 60:02d}"
 
 
-def train(out: Path, stage: str, seconds: float, overrides: list[str]) -> tuple[Path, float]:
-    """One ``nrt-train`` run under ``out``; its run folder and wall time (s)."""
-    data_dir = Path(os.environ.get("NRT_OUTPUT_DIR", "outputs")).resolve() / "datasets"
-    cmd = [sys.executable, "-m", "nrt.cli.train", f"stage={stage}", "preset=cpu", "logger=csv",
-           f"paths.data_dir={data_dir}", "trainer.enable_progress_bar=false",
-           f"+trainer.max_time={hms(seconds)}", *overrides]
-    start = time.perf_counter()
-    proc = subprocess.run(cmd, env={**os.environ, "NRT_OUTPUT_DIR": str(out)},
-                          capture_output=True, text=True)
-    wall = time.perf_counter() - start
-    if proc.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    runs = sorted((out / "default" / stage).iterdir(), key=lambda p: p.stat().st_mtime)
-    return runs[-1], wall
-
-
-def metrics(run: Path) -> list[dict]:
-    with open(run / "csv" / "metrics.csv") as f:
-        return list(csv.DictReader(f))
-
-
-def series(rows: list[dict], key: str) -> list[float]:
-    return [float(r[key]) for r in rows if r.get(key)]
+def train_for(out: Path, stage: str, seconds: float, overrides: list[str]) -> tuple[Path, float]:
+    """One ``nrt-train`` run (``preset=cpu``, CSV log) of at most ``seconds`` under ``out``;
+    its run folder and wall time (s)."""
+    return train(stage, out, "cpu", [f"+trainer.max_time={hms(seconds)}", *overrides],
+                 logger="csv")
 
 
 def report(label: str, run: Path, wall: float) -> None:
-    rows = metrics(run)
+    rows = metric_rows(run)
     steps = int(max(float(r["step"]) for r in rows)) + 1
     print(f"\n== stage 2: {label}  ({steps} steps, {wall:.0f} s wall incl. start-up, "
-          f"{series(rows, 'time/wall_s')[-1]:.0f} s training)")
+          f"{series(run, 'time/wall_s')[-1]:.0f} s training)")
     for key in PROPERTIES:
-        vals = series(rows, f"val/mse_{key}_x100")
+        vals = series(run, f"val/mse_{key}_x100")
         if vals:
             print(f"  MSE x100 {key:8s} start {vals[0]:8.3f}  end {vals[-1]:8.3f}")
     for key in ("psnr", "psnr_exit", "psnr_background_only", "psnr_transmitted_only"):
-        vals = series(rows, f"val/{key}")
+        vals = series(run, f"val/{key}")
         if vals:
             print(f"  held-out {key:22s} {vals[-1]:6.2f} dB")
     names = sorted({k[len("time/step_"):-2] for r in rows for k in r
                     if k.startswith("time/step_") and r[k]})
-    times = {k: series(rows, f"time/step_{k}_s") for k in names}
+    times = {k: series(run, f"time/step_{k}_s") for k in names}
     means = {k: sum(v) / len(v) for k, v in times.items() if v}
     total = sum(means.values())
     split = ", ".join(f"{k} {v * 1e3:.0f} ms ({100 * v / total:.0f}%)" for k, v in means.items())
@@ -90,16 +69,15 @@ def main() -> None:
     scene = [f"scene={args.scene}"]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        ea_run, ea_wall = train(out, "ea", args.ea_seconds, scene)
-        ea_rows = metrics(ea_run)
-        print(f"== stage 1 (EA): {int(max(float(r['step']) for r in ea_rows)) + 1} steps, "
-              f"{ea_wall:.0f} s wall; held-out PSNR {series(ea_rows, 'val/psnr')[-1]:.2f} dB, "
-              f"density corr {series(ea_rows, 'val/density_corr')[-1]:.3f}")
+        ea_run, ea_wall = train_for(out, "ea", args.ea_seconds, scene)
+        print(f"== stage 1 (EA): {int(max(series(ea_run, 'step'))) + 1} steps, "
+              f"{ea_wall:.0f} s wall; held-out PSNR {series(ea_run, 'val/psnr')[-1]:.2f} dB, "
+              f"density corr {series(ea_run, 'val/density_corr')[-1]:.3f}")
         variants = [("full gradients", [])]
         if args.compare_detach:
             variants.append(("detached in-scattering", ["losses.detach_inscatter=true"]))
         for label, extra in variants:
-            run, wall = train(out, "rte", args.rte_seconds, scene + extra + args.overrides)
+            run, wall = train_for(out, "rte", args.rte_seconds, scene + extra + args.overrides)
             report(label, run, wall)
 
 

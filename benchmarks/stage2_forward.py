@@ -16,7 +16,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from benchmarks.stage2_scenes import output_dir, series, train
+from benchmarks.common import output_dir, series, train
 
 
 def main() -> None:
@@ -28,9 +28,9 @@ def main() -> None:
     print(f"forward mode, preset={args.preset}, datasets under {output_dir() / 'datasets'}")
     with tempfile.TemporaryDirectory() as tmp:
         for label, extra in (("split (default)", []), ("paper", ["experiment=rte_paper"])):
-            run = train("forward", Path(tmp), args.preset,
-                        [f"budget.rte.steps={args.steps}", f"budget.val_every={args.steps // 6}",
-                         *extra, *args.overrides])
+            run, _ = train("forward", Path(tmp), args.preset,
+                           [f"budget.rte.steps={args.steps}",
+                            f"budget.val_every={args.steps // 6}", *extra, *args.overrides])
             seconds, psnr, exit_ = (series(run, k) for k in ("time/wall_s", "val/psnr",
                                                                "val/psnr_exit"))
             steps = series(run, "step")

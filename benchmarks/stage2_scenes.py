@@ -17,11 +17,9 @@ elements list written once and never tuned on).
 from __future__ import annotations
 
 import argparse
-import csv
-import os
-import subprocess
-import sys
 from pathlib import Path
+
+from benchmarks.common import newest_checkpoint, output_dir, series, train
 
 SCENES = {
     "default": [],
@@ -32,35 +30,6 @@ SCENES = {
     "heldout": ["scene=heldout"],
 }
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
-
-
-def output_dir() -> Path:
-    return Path(os.environ.get("NRT_OUTPUT_DIR", "outputs")).resolve()
-
-
-def newest_checkpoint(scene: str) -> Path | None:
-    runs = sorted((output_dir() / scene / "ea").glob("*/checkpoints/last.ckpt"),
-                  key=lambda p: p.stat().st_mtime)
-    return runs[-1] if runs else None
-
-
-def train(stage: str, out: Path, preset: str, overrides: list[str]) -> Path:
-    """``nrt-train`` through the CLI, runs under ``out``; returns the new run folder."""
-    cmd = [sys.executable, "-m", "nrt.cli.train", f"stage={stage}", f"preset={preset}",
-           "logger=[tensorboard,csv]", f"paths.data_dir={output_dir() / 'datasets'}",
-           "trainer.enable_progress_bar=false", "render.progress=false", *overrides]
-    before = set(out.glob(f"*/{stage}/*"))
-    proc = subprocess.run(cmd, env={**os.environ, "NRT_OUTPUT_DIR": str(out)},
-                          capture_output=True, text=True)
-    if proc.returncode != 0:
-        sys.exit(f"{' '.join(cmd)} failed:\n{proc.stderr[-3000:]}")
-    (run,) = set(out.glob(f"*/{stage}/*")) - before
-    return run
-
-
-def series(run: Path, key: str) -> list[float]:
-    with open(run / "csv" / "metrics.csv") as f:
-        return [float(r[key]) for r in csv.DictReader(f) if r.get(key)]
 
 
 def main() -> None:
@@ -78,9 +47,9 @@ def main() -> None:
         scene = SCENES[name]
         ckpt = given.get(name) or newest_checkpoint(name)
         if ckpt is None:
-            ckpt = train("ea", output_dir(), args.preset, scene) / "checkpoints" / "last.ckpt"
-        run = train("rte", args.out, args.preset,
-                    [*scene, f"init.ea_ckpt={ckpt}", *args.overrides])
+            ckpt = train("ea", output_dir(), args.preset, scene)[0] / "checkpoints" / "last.ckpt"
+        run, _ = train("rte", args.out, args.preset,
+                       [*scene, f"init.ea_ckpt={ckpt}", *args.overrides])
         mse = {k: series(run, f"val/mse_{k}_x100") for k in PROPERTIES}
         rows.append((name, mse, series(run, "val/psnr")[-1], series(run, "time/wall_s")[-1],
                      int(max(series(run, "step"))) + 1))

@@ -14,7 +14,6 @@ import pytest
 import torch
 
 import nrt.data.render as render
-from nrt.data import mitsuba_backend
 from nrt.data.dataset import load_dataset
 from nrt.data.exr import read_exr, write_exr
 from nrt.data.media import medium_grids
@@ -125,7 +124,7 @@ def test_unchanged_spec_is_a_no_op(tiny_dataset, tiny_output_dir, scene_config, 
         raise AssertionError("the cached dataset was rendered again")
 
     monkeypatch.setattr(render, "render_dataset", no_render)
-    monkeypatch.setattr(mitsuba_backend, "select_variant", no_render)
+    monkeypatch.setattr(render, "select_variant", no_render)
     before = file_times(tiny_dataset)
     folder = render.ensure_dataset(scene_config(), tiny_output_dir / "datasets", progress=False)
     assert folder == tiny_dataset

@@ -1,6 +1,7 @@
 """Stage 1 (EA) end to end: the real CLI on the tiny preset, kill + resume, and hard
 cases (dense and near-empty media) that must never put NaN or Inf in the parameters."""
 
+import math
 import signal
 import subprocess
 import time
@@ -22,6 +23,7 @@ from omegaconf import OmegaConf
 
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
+from nrt.modules.fields.ea_field import EAField
 from nrt.modules.stages.ea import EAModule
 from nrt.run_dirs import SWEEP_FILE, discard_failed_start, new_run_dir, sweep_dir
 
@@ -175,3 +177,36 @@ def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, nam
     trainer.fit(model, datamodule=dm)
     assert trainer.global_step == 200
     assert torch.isfinite(model.density_grid(16)).all()
+
+
+def test_ea_colour_reads_the_sh_table_its_weights_were_trained_on():
+    """The EA colour net's view input is the real SH table up to degree 2 without the
+    Condon-Shortley phase (Sloan's "Stupid SH tricks"; constants from their square roots
+    here), which ``ea_field.py`` wrote out itself before it used :mod:`nrt.physics.sh`: the
+    order and signs are baked into trained colour weights, so a field must give the same
+    colour from the same weights. The two bases differ by float32 rounding (~1e-7
+    relative), which the MLP passes on at that relative size; 1e-6 leaves room, while the
+    Condon-Shortley signs would move colours by far more. Old checkpoints load: the state
+    dict gains no key."""
+    torch.manual_seed(0)
+    field = EAField(hash_grid={"levels": 4, "log2_table_size": 10}, hidden=32)
+    for p in field.parameters():  # well away from zero, as after training
+        p.data.normal_(0, 0.5)
+    x = torch.rand(512, 3) * 2 - 1
+    d = torch.nn.functional.normalize(torch.randn(512, 3), dim=-1)
+    sigma, rgb = field(x, d)
+
+    a, b = math.sqrt(3 / (4 * math.pi)), math.sqrt(15 / (4 * math.pi))
+    c, e = math.sqrt(5 / (16 * math.pi)), math.sqrt(15 / (16 * math.pi))
+    dx, dy, dz = d.unbind(-1)
+    table = torch.stack((torch.full_like(dx, math.sqrt(1 / (4 * math.pi))), a * dy, a * dz,
+                         a * dx, b * dx * dy, b * dy * dz, c * (3 * dz * dz - 1), b * dx * dz,
+                         e * (dx * dx - dy * dy)), -1)
+    h = field.density_net(field.encode(x))
+    expected = torch.nn.functional.softplus(field.color_net(torch.cat((h[..., 1:], table), -1)))
+    torch.testing.assert_close(rgb, expected, atol=1e-6, rtol=1e-6)
+    flipped = table * torch.tensor([1.0, -1, 1, -1, 1, -1, 1, -1, 1])  # Condon-Shortley
+    wrong = torch.nn.functional.softplus(field.color_net(torch.cat((h[..., 1:], flipped), -1)))
+    assert (wrong - rgb).abs().max() > 1e-2
+    torch.testing.assert_close(sigma, field.density(x))
+    assert "sh_signs" not in field.state_dict()

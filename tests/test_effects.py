@@ -3,12 +3,14 @@
 import numpy as np
 import pytest
 
-from nrt.data import mitsuba_backend
+from nrt.mitsuba.render import ViewRenderer
+from nrt.mitsuba.scene import mitsuba_properties, scene_dict
+from nrt.mitsuba.variant import select_variant
 
 
 @pytest.fixture(scope="module")
 def mi():
-    return mitsuba_backend.select_variant()
+    return select_variant()
 
 
 def spec(phase="hg", chromatic=True, order=-1, emitters=()):
@@ -26,7 +28,7 @@ def grids(n=4):
 
 
 def build(mi, s):
-    return mitsuba_backend.scene_dict(mi, s, grids(), np.ones((8, 16, 3), np.float32), 8, 8,
+    return scene_dict(mi, s, grids(), np.ones((8, 16, 3), np.float32), 8, 8,
                                       40.0, 4)
 
 
@@ -56,12 +58,12 @@ def test_grey_scene_warns_about_grids_that_are_not_grey(caplog):
     albedo = np.array([0.9, 0.5, 0.2], np.float32)
     grey = {"sigma_a": t * (1 - albedo), "sigma_s": t * albedo, "g": g["g"]}
     effects = spec(chromatic=False)["effects"]
-    with caplog.at_level("WARNING", logger="nrt.data.mitsuba_backend"):
-        props = mitsuba_backend.mitsuba_properties(grey, effects)
+    with caplog.at_level("WARNING", logger="nrt.mitsuba.scene"):
+        props = mitsuba_properties(grey, effects)
     assert not caplog.records
     np.testing.assert_allclose(props["albedo"][t[..., 0] > 0], np.broadcast_to(
         albedo, props["albedo"][t[..., 0] > 0].shape), rtol=1e-5)
-    mitsuba_backend.mitsuba_properties(g, effects)
+    mitsuba_properties(g, effects)
     assert "channel 0" in caplog.text
 
 
@@ -76,9 +78,9 @@ def test_point_lights_only_when_listed(mi):
     scene = build(mi, spec(emitters=lights))
     assert scene["point_light_0"]["type"] == "point"
     # and it renders: the point light adds light to the medium
-    dark = mitsuba_backend.ViewRenderer(mi, build(mi, spec())).render(
+    dark = ViewRenderer(mi, build(mi, spec())).render(
         _front_camera(), 8, 0)
-    lit = mitsuba_backend.ViewRenderer(mi, scene).render(_front_camera(), 8, 0)
+    lit = ViewRenderer(mi, scene).render(_front_camera(), 8, 0)
     assert lit.mean() > dark.mean()
 
 

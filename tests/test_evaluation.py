@@ -156,16 +156,18 @@ def test_novel_environments_are_those_not_trained_on():
 
 def test_mitsuba_export_renders_like_the_dataset_scene(tmp_path, tiny_dataset):
     """medium.xml + .vol files describe the same medium as the renderer's scene dict."""
-    from nrt.data import mitsuba_backend
+    from nrt.mitsuba.export import write_medium_files
+    from nrt.mitsuba.scene import scene_dict
+    from nrt.mitsuba.variant import select_variant
 
-    mi = mitsuba_backend.select_variant("auto")
+    mi = select_variant("auto")
     spec = json.loads((tiny_dataset / "scene.json").read_text())["spec"]
     gt = load_property_grids(tiny_dataset / "ground_truth.npz")
     grids = {k: gt[k].numpy() for k in ("sigma_a", "sigma_s", "g")}
-    files = mitsuba_backend.write_medium_files(mi, tmp_path, grids, spec["bbox"],
+    files = write_medium_files(mi, tmp_path, grids, spec["bbox"],
                                                spec["effects"])
     sky = np.full((8, 16, 3), 0.5, np.float32)
-    scene_ref = mi.load_dict(mitsuba_backend.scene_dict(mi, spec, grids, sky, 16, 16, 40.0, 16))
+    scene_ref = mi.load_dict(scene_dict(mi, spec, grids, sky, 16, 16, 40.0, 16))
     scene_exp = mi.load_file(files["xml"])
     p_ref, p_exp = mi.traverse(scene_ref), mi.traverse(scene_exp)
     for key in ("sigma_t.data", "albedo.data"):

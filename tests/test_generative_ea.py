@@ -313,32 +313,46 @@ def test_bad_configs_exit_2_before_any_data(tmp_path):
 # -------------------------------------------------------------- the CLI end to end
 
 
+def cli_family_run(family_dir: Path, stage: str, args: tuple[str, ...], steps: tuple[int, int],
+                   member_metrics: tuple[str, ...], member_file: str) -> tuple[Path, dict, dict]:
+    """``nrt-train stage=<stage>`` in generative mode on the test family for ``steps[0]``
+    steps, then ``resume=true`` to ``steps[1]``. Checks the one run folder, run.json's mode,
+    stage and members, each member's finite last ``val/<metric>_member<k>`` and export
+    ``members/<name>/<member_file>``, the resume in place and that ``latents.npz`` holds the
+    resumed checkpoint's codes. Returns the run folder, its run.json and that checkpoint."""
+    out, data = family_dir.parent.parent, family_dir.parent
+    proc = run_train(out, data, *args, f"budget.{stage}.steps={steps[0]}", stage=stage)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = sorted((out / "family" / stage).iterdir())
+    assert len(runs) == 1
+    run = runs[0]
+    info = json.loads((run / "run.json").read_text())
+    assert info["mode"] == "generative" and info["stage"] == stage
+    assert [m["name"] for m in info["members"]] == [f"family_seed{k}" for k in range(K)]
+    rows = read_csv_metrics(run)
+    for k in range(K):
+        for metric in member_metrics:
+            assert np.isfinite(last_value(rows, f"val/{metric}_member{k}"))
+        assert (run / "members" / f"family_seed{k}" / member_file).is_file()
+    saved = resume_in_place(out, data, run, *args, f"budget.{stage}.steps={steps[1]}",
+                            stage=stage)
+    assert saved["global_step"] == steps[1]
+    with np.load(run / "latents.npz") as latents:
+        assert np.array_equal(latents["codes"], saved["state_dict"]["codes"].numpy())
+    return run, info, saved
+
+
 @pytest.mark.slow
 def test_cli_trains_a_family_and_resumes_in_place(family_dir):
     """``nrt-train stage=ea mode=generative scene=family``: the run folder, run.json, the
     per-member metrics, the exports; then ``resume=true`` continues it in place."""
-    out, data = family_dir.parent.parent, family_dir.parent
     args = (*FAMILY[1:], *SMALL, "budget.val_every=20", "budget.val_views=1",
             "budget.checkpoint_every=20")
-    proc = run_train(out, data, *args, "budget.ea.steps=40")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    runs = sorted((out / "family" / "ea").iterdir())
-    assert len(runs) == 1
-    run = runs[0]
-    info = json.loads((run / "run.json").read_text())
-    assert info["mode"] == "generative" and info["family_dir"] == str(family_dir.resolve())
-    assert [m["name"] for m in info["members"]] == [f"family_seed{k}" for k in range(K)]
+    run, info, _ = cli_family_run(family_dir, "ea", args, (40, 60),
+                                  ("psnr", "density_corr"), "density_grid.npz")
+    assert info["family_dir"] == str(family_dir.resolve())
     assert info["environments"] == ["sky0"] and "dataset_dir" not in info
-    rows = read_csv_metrics(run)
-    for k in range(K):
-        assert np.isfinite(last_value(rows, f"val/psnr_member{k}"))
-        assert np.isfinite(last_value(rows, f"val/density_corr_member{k}"))
-        assert (run / "members" / f"family_seed{k}" / "density_grid.npz").is_file()
     with np.load(run / "latents.npz") as latents:
         assert latents["codes"].shape == (K, 4)
     with pytest.raises(NrtError, match="generative run"):  # nrt-eval: not yet, clearly
         open_run(run)
-    saved = resume_in_place(out, data, run, *args, "budget.ea.steps=60")
-    assert saved["global_step"] == 60
-    with np.load(run / "latents.npz") as latents:
-        assert np.array_equal(latents["codes"], saved["state_dict"]["codes"].numpy())

@@ -9,7 +9,6 @@ reconstructs its own medium better than another member's; config mistakes end in
 from __future__ import annotations
 
 import itertools
-import json
 import os
 import re
 import subprocess
@@ -25,15 +24,12 @@ from conftest import (
     NRT_TRAIN,
     SMALL_FAMILY,
     compose_config,
-    last_value,
-    read_csv_metrics,
     refusal,
-    resume_in_place,
-    run_train,
 )
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import OmegaConf
 from test_generative_ea import SHORT as EA_SHORT
+from test_generative_ea import K, cli_family_run
 from test_generative_ea import train as train_ea
 
 from nrt.cli.checks import check_mode
@@ -48,7 +44,6 @@ from nrt.modules.stages.generative_rte import GenerativeRTEModule, member_mean
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
 
-K = 4  # the tiny preset's budget.family.members
 STAGE2 = ("stage=rte", *GENERATIVE_FAMILY, *SMALL_FAMILY)
 SHORT = ("budget.rte.steps=24", "budget.val_every=12", "budget.val_views=1",
          "budget.checkpoint_every=24", "budget.rte.uncollided_directions=16")
@@ -356,27 +351,12 @@ def test_cli_trains_stage_2_on_a_family_and_resumes_in_place(family_dir, short_e
     """``nrt-train stage=rte mode=generative scene=family init.ea_ckpt=...``: run.json, the
     per-member metrics, the exports; ``resume=true`` continues the run in place; the
     checkpoint loads by the class run.json's config names, as every run does."""
-    out, data = family_dir.parent.parent, family_dir.parent
     args = (*GENERATIVE_FAMILY[1:], *SMALL_FAMILY, f"init.ea_ckpt={short_ea}",
             "budget.val_every=10", "budget.val_views=1", "budget.checkpoint_every=10",
             "budget.rte.uncollided_directions=16")
-    proc = run_train(out, data, *args, "budget.rte.steps=20", stage="rte")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    runs = sorted((out / "family" / "rte").iterdir())
-    assert len(runs) == 1
-    run = runs[0]
-    info = json.loads((run / "run.json").read_text())
-    assert info["mode"] == "generative" and info["stage"] == "rte"
+    run, info, saved = cli_family_run(family_dir, "rte", args, (20, 30),
+                                      ("mse_sigma_t_x100", "psnr"), "medium_grids.npz")
     assert info["ea_ckpt"] == str(short_ea.resolve())
-    rows = read_csv_metrics(run)
-    for k in range(K):
-        assert np.isfinite(last_value(rows, f"val/mse_sigma_t_x100_member{k}"))
-        assert np.isfinite(last_value(rows, f"val/psnr_member{k}"))
-        assert (run / "members" / f"family_seed{k}" / "medium_grids.npz").is_file()
-    saved = resume_in_place(out, data, run, *args, "budget.rte.steps=30", stage="rte")
-    assert saved["global_step"] == 30
-    with np.load(run / "latents.npz") as latents:
-        assert np.array_equal(latents["codes"], saved["state_dict"]["codes"].numpy())
     target = hydra.utils.get_class(OmegaConf.load(run / ".hydra" / "config.yaml").model._target_)
     module = target.load_from_checkpoint(run / "checkpoints" / "last.ckpt", map_location="cpu")
     assert module.member_names() == [f"family_seed{k}" for k in range(K)]

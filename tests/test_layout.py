@@ -18,6 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "nrt"
 LAYERS: list[tuple[str, ...]] = [
     ("nrt.errors",),
     ("nrt.physics", "nrt.cameras"),
+    ("nrt.mitsuba",),
     ("nrt.weights", "nrt.metrics", "nrt.run_dirs", "nrt.tensorboard"),
     ("nrt.data",),
     ("nrt.modules.encodings",),
@@ -29,8 +30,10 @@ LAYERS: list[tuple[str, ...]] = [
     ("nrt.callbacks",),
     ("nrt.cli",),
 ]
-"""Lowest first: a module may import its own layer and the layers before it. Evaluation
-sits below the callbacks: the periodic re-render callback runs nrt-eval's evaluation."""
+"""Lowest first: a module may import its own layer and the layers before it. Mitsuba sits
+just above the physics (it needs the camera conventions) and below the data, which it renders.
+Evaluation sits below the callbacks: the periodic re-render callback runs nrt-eval's
+evaluation."""
 
 PACKAGES_ONLY = {"nrt", "nrt.modules"}
 """Namespaces that hold layers (their ``__init__`` imports nothing)."""

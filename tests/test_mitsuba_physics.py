@@ -1,7 +1,7 @@
 """The project's conventions pinned against real Mitsuba renders (DESIGN.md section 2).
 
-Every scene is built by :func:`nrt.data.mitsuba_backend.scene_dict` and rendered by
-:class:`~nrt.data.mitsuba_backend.ViewRenderer`, the code that renders the datasets, and is
+Every scene is built by :func:`nrt.mitsuba.scene.scene_dict` and rendered by
+:class:`~nrt.mitsuba.render.ViewRenderer`, the code that renders the datasets, and is
 compared with a reference computed by nrt's own physics (environment lookup, cameras,
 ray-box intersection, grid lookup, optical depth, HG phase). References average over each
 pixel's footprint the way Mitsuba's ``box`` filter does (:func:`mc_stats.footprint_average`).
@@ -28,7 +28,9 @@ import torch
 from mc_stats import compare, compare_two, footprint_average
 
 from nrt.cameras import Intrinsics, look_at, pixel_rays
-from nrt.data import mitsuba_backend
+from nrt.mitsuba.render import ViewRenderer
+from nrt.mitsuba.scene import scene_dict
+from nrt.mitsuba.variant import select_variant
 from nrt.physics.envmap import (
     EnvironmentMap,
     direction_to_uv,
@@ -51,12 +53,12 @@ def check(comp, what: str) -> None:
 
 @pytest.fixture(scope="module")
 def mi():
-    return mitsuba_backend.select_variant()
+    return select_variant()
 
 
 def make_spec(phase: str = "isotropic", chromatic: bool = True, order: int = -1,
               g: float = 0.0, bbox=((-1, -1, -1), (1, 1, 1))) -> dict:
-    """The keys of a resolved spec that :func:`mitsuba_backend.scene_dict` reads."""
+    """The keys of a resolved spec that :func:`nrt.mitsuba.scene.scene_dict` reads."""
     return {"bbox": [list(map(float, b)) for b in bbox],
             "effects": {"phase": phase, "chromatic": chromatic, "max_scattering_order": order,
                         "emitters": []},
@@ -82,7 +84,7 @@ def smooth_sky(height: int = 16, width: int = 32) -> np.ndarray:
 
 
 def render_pair(mi, scene: dict, c2w: np.ndarray, spp: int, seeds=None):
-    renderer = mitsuba_backend.ViewRenderer(mi, scene)
+    renderer = ViewRenderer(mi, scene)
     return [renderer.render(c2w, spp, s).astype(np.float64) for s in (seeds or SEEDS)]
 
 
@@ -114,7 +116,7 @@ def test_envmap_convention_matches_mitsuba(mi, target):
     width, height, fov = 40, 32, 60.0
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
     c2w = look_at([0.0, 0.0, 0.0], np.asarray(target))
-    scene = mitsuba_backend.scene_dict(mi, make_spec(), None, sky, width, height, fov, 64)
+    scene = scene_dict(mi, make_spec(), None, sky, width, height, fov, 64)
     a, b = render_pair(mi, scene, c2w, 64)
     env = EnvironmentMap(torch.as_tensor(sky, dtype=torch.float64))
     ref = footprint_average(lambda o, d: env.lookup(d), c2w, intr, 8)
@@ -194,13 +196,13 @@ def test_camera_convention_with_an_emissive_sphere(mi):
     footprint = depth / intr.fx  # one pixel's width at the sphere, near the image centre
     radius = footprint
     radiance = np.array([3.0, 2.0, 1.0])
-    scene = mitsuba_backend.scene_dict(mi, make_spec(), None, np.zeros((8, 16, 3)), width,
+    scene = scene_dict(mi, make_spec(), None, np.zeros((8, 16, 3)), width,
                                        height, fov, spp)
     assert "environment" not in scene  # a black sky is left out (Mitsuba NaNs otherwise)
     scene["ball"] = {"type": "sphere", "center": centre.tolist(), "radius": radius,
                      "emitter": {"type": "area",
                                  "radiance": {"type": "rgb", "value": radiance.tolist()}}}
-    renderer = mitsuba_backend.ViewRenderer(mi, scene)
+    renderer = ViewRenderer(mi, scene)
     c_t = torch.as_tensor(centre)
 
     def hits(o, d):  # rays (from outside) that hit the sphere
@@ -267,7 +269,7 @@ def test_white_furnace(mi):
     spec = make_spec(phase="hg", chromatic=False, order=-1, g=0.6)
     grids = constant_grids(4, 0.0, 2.0, g=0.6)
     sky = np.broadcast_to(c.astype(np.float32), (8, 16, 3))
-    scene = mitsuba_backend.scene_dict(mi, spec, grids, sky, width, height, fov, 64)
+    scene = scene_dict(mi, spec, grids, sky, width, height, fov, 64)
     a, b = render_pair(mi, scene, c2w, 64)
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
     inside = hit_fraction(c2w, intr, spec["bbox"]) == 1
@@ -285,7 +287,7 @@ def _chromatic_extinction_scene(mi, sigma_t_grid: np.ndarray, bbox, sky, width, 
              "sigma_s": (0.7 * sigma_t_grid).astype(np.float32),
              "g": np.zeros(sigma_t_grid.shape[:3], np.float32)}
     spec = make_spec(phase="isotropic", chromatic=True, order=0, bbox=bbox)
-    return mitsuba_backend.scene_dict(mi, spec, grids, sky, width, height, fov, spp)
+    return scene_dict(mi, spec, grids, sky, width, height, fov, spp)
 
 
 BEER_BBOX = ((-1.0, -0.8, -0.9), (1.1, 0.9, 1.0))  # off-centre, not a cube
@@ -443,7 +445,7 @@ def single_scattering_case(g: float) -> SingleScatteringCase:
     light travels at 40 degrees from the direction to the camera (cos = 0.77), black sky,
     order 1 (``max_depth = 2``), rendered by Mitsuba at 64 spp with seeds 1 and 2 (once per
     session: tests of other modules reuse the renders)."""
-    mi = mitsuba_backend.select_variant()
+    mi = select_variant()
     width = height = 32
     fov = 45.0
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
@@ -451,7 +453,7 @@ def single_scattering_case(g: float) -> SingleScatteringCase:
     sun, irradiance = _sun_direction(), np.array([6.0, 5.0, 4.0])
     spec = make_spec(phase="hg", chromatic=False, order=1, g=g)
     grids = constant_grids(4, 0.05, 0.3, g=g)
-    scene = mitsuba_backend.scene_dict(mi, spec, grids, np.zeros((8, 16, 3)), width, height,
+    scene = scene_dict(mi, spec, grids, np.zeros((8, 16, 3)), width, height,
                                        fov, 64)
     scene["sun"] = {"type": "directional", "direction": sun.tolist(),
                     "irradiance": {"type": "rgb", "value": irradiance.tolist()}}
@@ -510,7 +512,7 @@ def test_varying_g_plugin_matches_builtin_hg(mi, g):
     def renders(phase, gg, seeds):
         grids = constant_grids(4, 0.1, [0.8, 1.0, 1.2], g=gg)
         spec = make_spec(phase=phase, chromatic=True, order=3, g=gg)
-        scene = mitsuba_backend.scene_dict(mi, spec, grids, sky, width, height, fov, 64)
+        scene = scene_dict(mi, spec, grids, sky, width, height, fov, 64)
         assert scene["medium_box"]["interior"]["phase"]["type"] == (
             "nrt_hg_grid" if phase == "varying_hg" else "hg")
         scene["sun"] = sun
@@ -528,12 +530,12 @@ def test_black_sky_renders_without_nan(mi):
     """A black environment is left out of the scene (Mitsuba's envmap emitter cannot
     sample a map without energy: next-event estimation turned ~60% of pixels into NaN)."""
     spec = make_spec(phase="hg", chromatic=True, order=-1, g=0.3)
-    scene = mitsuba_backend.scene_dict(mi, spec, constant_grids(4, 0.1, 1.0, g=0.3),
+    scene = scene_dict(mi, spec, constant_grids(4, 0.1, 1.0, g=0.3),
                                        np.zeros((8, 16, 3)), 16, 16, 45.0, 16)
     assert "environment" not in scene
     scene["sun"] = {"type": "directional", "direction": [0.0, -1.0, 0.0],
                     "irradiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
-    img = mitsuba_backend.ViewRenderer(mi, scene).render(look_at([0, 0, 4.0], [0, 0, 0]), 16, 0)
+    img = ViewRenderer(mi, scene).render(look_at([0, 0, 4.0], [0, 0, 0]), 16, 0)
     assert np.isfinite(img).all() and img.max() > 0
 
 

@@ -551,7 +551,7 @@ def test_grey_media_have_one_extinction_channel_and_an_rgb_albedo():
     so forward mode sees the coloured albedo, not red's for all three channels. A fresh
     grey NeuralMedium starts at sigma_t = rho (the EA density) and albedo ``init_albedo``
     in every channel, as the chromatic one does."""
-    from nrt.data.mitsuba_backend import mitsuba_properties
+    from nrt.mitsuba.scene import mitsuba_properties
     from nrt.physics.volume import cell_centres
 
     gen = torch.Generator().manual_seed(51)

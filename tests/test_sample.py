@@ -177,10 +177,10 @@ def sampled(family_data, tmp_path_factory) -> tuple:
 
 
 def test_sampled_media_are_finite_valid_and_load_in_mitsuba(sampled, family_data):
-    from nrt.data import mitsuba_backend
+    from nrt.mitsuba.variant import select_variant
 
     model, result, out = sampled
-    mi = mitsuba_backend.select_variant("auto")
+    mi = select_variant("auto")
     folders = sorted((out / "samples").iterdir())
     assert [f.name for f in folders] == ["sample000", "sample001", "sample002"]
     for i, folder in enumerate(folders):
@@ -366,10 +366,10 @@ def generative_run(family_data, tmp_path_factory) -> tuple[Path, dict]:
 
 @pytest.mark.slow
 def test_real_samples_render_and_load_in_mitsuba(generative_run):
-    from nrt.data import mitsuba_backend
+    from nrt.mitsuba.variant import select_variant
 
     folder, _ = generative_run
-    mi = mitsuba_backend.select_variant("auto")
+    mi = select_variant("auto")
     for sample in sorted((folder / "samples").iterdir()):
         grids = load_property_grids(sample / "medium_grids.npz")
         check_medium(grids, sample.name)  # finite, sigma >= 0, |g| < 1

@@ -18,9 +18,10 @@ from mc_stats import compare, footprint_average
 from test_mitsuba_physics import SEEDS, check, make_spec, render_pair, smooth_sky
 
 from nrt.cameras import Intrinsics, look_at
-from nrt.data import mitsuba_backend
 from nrt.errors import NrtError
 from nrt.losses.transport import scattered_target, transport_loss, unrolled_inscatter
+from nrt.mitsuba.scene import scene_dict
+from nrt.mitsuba.variant import select_variant
 from nrt.modules.fields.coarse_to_fine import (
     check_schedule,
     decaying_lr,
@@ -378,7 +379,7 @@ def test_first_scattering_image_matches_mitsuba_order_one():
     comparison of :mod:`mc_stats` applies: region means |z| < 5 and the structure ratio
     within its 5-sigma bound. The same renders reject nrt's image with g flipped (|z| up to
     75, ratio 17.6 in blue) and with 10% more sigma_s (z 6.5 and 11.5 in red and green)."""
-    mi = mitsuba_backend.select_variant()
+    mi = select_variant()
     width = height = 24
     fov = 45.0
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
@@ -393,7 +394,7 @@ def test_first_scattering_image_matches_mitsuba_order_one():
     grids = {"sigma_a": np.broadcast_to(np.float32([0.05, 0.1, 0.2]), (n, n, n, 3)).copy(),
              "sigma_s": np.broadcast_to(np.float32([0.6, 0.5, 0.4]), (n, n, n, 3)).copy(),
              "g": np.full((n, n, n), 0.4, np.float32)}
-    scene = mitsuba_backend.scene_dict(mi, spec, grids, sky, width, height, fov, 64)
+    scene = scene_dict(mi, spec, grids, sky, width, height, fov, 64)
     scene["sun"] = {"type": "directional", "direction": (-sun).tolist(),
                     "irradiance": {"type": "rgb", "value": irradiance.tolist()}}
     a, b = render_pair(mi, scene, c2w, 64)

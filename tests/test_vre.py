@@ -43,12 +43,13 @@ from test_rte_physics import SLAB, ConstantLight, exact_inscatter, sphere_quadra
 from torch import nn
 
 from nrt.cameras import Intrinsics, look_at, pixel_rays
-from nrt.data import mitsuba_backend
 from nrt.losses.boundary import boundary_loss
 from nrt.losses.observation import observation_loss
 from nrt.losses.rte import rte_residuals
 from nrt.losses.samplers import boundary_samples, uniform_box_points
 from nrt.losses.vre import vre_loss
+from nrt.mitsuba.scene import scene_dict
+from nrt.mitsuba.variant import select_variant
 from nrt.modules.fields.medium import GroundTruthMedium, Medium
 from nrt.modules.renderers.volume import transmitted_background, vre_render
 from nrt.physics.compositing import alpha_composite, stratified_samples
@@ -62,7 +63,7 @@ F64 = torch.float64
 
 @pytest.fixture(scope="module")
 def mi():
-    return mitsuba_backend.select_variant()
+    return select_variant()
 
 
 class FieldLight(nn.Module):
@@ -357,7 +358,7 @@ def test_vre_single_scattering_of_a_point_light_matches_mitsuba(mi, where):
     fov = 40.0
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
     c2w = look_at([-0.6, 1.5, 1.2], [-0.3, 0.0, 0.1])
-    scene = mitsuba_backend.scene_dict(mi, spec, grids, np.zeros((8, 16, 3)), width, height,
+    scene = scene_dict(mi, spec, grids, np.zeros((8, 16, 3)), width, height,
                                        fov, 256)
     a, b = render_pair(mi, scene, c2w, 256)
     assert (hit_fraction(c2w, intr, SLAB_BOX) == 1).mean() > 0.9  # the slab fills the view
@@ -425,7 +426,7 @@ def test_sun_split_irradiance_matches_what_the_envmap_delivers(mi):
     fov = 40.0
     intr = Intrinsics.from_fov_x(width, height, math.radians(fov))
     c2w = look_at(SUN_EYE * np.array([0.4, 0.7, 0.5]), [0.0, 0.0, 0.0])
-    scene = mitsuba_backend.scene_dict(mi, spec, grids, sun_part.radiance.float().numpy(),
+    scene = scene_dict(mi, spec, grids, sun_part.radiance.float().numpy(),
                                        width, height, fov, 64)
     a, b = render_pair(mi, scene, c2w, 64)
     medium = ground_truth_of(spec, grids)

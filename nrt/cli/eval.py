@@ -87,12 +87,13 @@ def eval_task(cfg: DictConfig) -> dict:
     import torch
     from torch.utils.tensorboard import SummaryWriter
 
-    from nrt.data import mitsuba_backend
     from nrt.data.dataset import load_dataset
     from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
     from nrt.evaluation import evaluate
     from nrt.evaluation.images import save_png
     from nrt.metrics import LPIPS
+    from nrt.mitsuba.export import write_medium_files
+    from nrt.mitsuba.variant import select_variant
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     inputs = check_inputs(cfg)
@@ -109,9 +110,8 @@ def eval_task(cfg: DictConfig) -> dict:
     grids = {k: grids[k] for k in ("sigma_a", "sigma_s", "g")}
     save_property_grids(out_dir / MEDIUM_GRIDS_FILE, grids, bbox)
     if cfg.export.mitsuba:
-        mi = mitsuba_backend.select_variant(cfg.render.variant)
-        mitsuba_backend.write_medium_files(mi, out_dir / "volumes", grids, bbox,
-                                           medium["effects"])
+        mi = select_variant(cfg.render.variant)
+        write_medium_files(mi, out_dir / "volumes", grids, bbox, medium["effects"])
     result = evaluate.Evaluation()
     if data.ground_truth is not None:
         result.metrics.update(evaluate.property_metrics(grids, data.ground_truth, bbox,

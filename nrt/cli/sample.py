@@ -40,9 +40,9 @@ def settings_of(cfg: DictConfig):
 
 def sample_task(cfg: DictConfig) -> dict:
     from nrt.data.family import load_family
-    from nrt.data.mitsuba_backend import select_variant
     from nrt.evaluation.runs import load_generative_model, open_generative_run
     from nrt.evaluation.sample import load_family_data, make_fid, sample_media
+    from nrt.mitsuba.variant import select_variant
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     settings = settings_of(cfg)

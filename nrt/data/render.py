@@ -27,12 +27,14 @@ import numpy as np
 from tqdm import tqdm
 
 from nrt.cameras import Intrinsics, look_at, sphere_positions
-from nrt.data import mitsuba_backend
 from nrt.data.exr import read_exr, write_exr
 from nrt.data.media import medium_grids
 from nrt.data.sky import sky_map
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import DatasetError, SceneError
+from nrt.mitsuba.render import ViewRenderer
+from nrt.mitsuba.scene import scene_dict
+from nrt.mitsuba.variant import select_variant
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +87,7 @@ def render_dataset(spec: dict, out_dir: str | Path, variant: str = "auto",
     """Render every view of ``spec`` under each environment into ``out_dir`` (atomic)."""
     out_dir = Path(out_dir)
     rigs, intr = camera_rig(spec)  # validates the rig before any work or file is made
-    mi = mitsuba_backend.select_variant(variant)
+    mi = select_variant(variant)
     start = time.perf_counter()
     tmp = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
@@ -121,7 +123,7 @@ def _render_into(tmp: Path, spec: dict, rigs: dict[str, np.ndarray], intr: Intri
         env_files[name] = f"envmaps/{name}.exr"
         write_exr(tmp / env_files[name], radiance)
         (tmp / "images" / name).mkdir(parents=True)
-        renderer = mitsuba_backend.ViewRenderer(mi, mitsuba_backend.scene_dict(
+        renderer = ViewRenderer(mi, scene_dict(
             mi, spec, grids, radiance, cams["width"], cams["height"], cams["fov_x_deg"],
             spec["spp"]))
         for split_idx, split in enumerate(SPLITS):

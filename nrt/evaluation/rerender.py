@@ -1,6 +1,6 @@
 """Re-render property grids with Mitsuba ``volpath`` from a dataset's cameras.
 
-The same scene description as the dataset renderer (:mod:`nrt.data.mitsuba_backend`):
+The same scene description as the dataset renderer (:mod:`nrt.mitsuba.scene`):
 a medium built for the scene's effects (spatially varying g through the ``nrt_hg_grid``
 plugin), the frame's environment map, the scene's point emitters, plus optional extra
 local lights for relighting. Seeds differ from the dataset's, so a re-render of the true
@@ -15,8 +15,10 @@ import numpy as np
 import torch
 
 from nrt.cameras import fov_x_deg
-from nrt.data import mitsuba_backend
 from nrt.data.dataset import SceneDataset
+from nrt.mitsuba.render import ViewRenderer
+from nrt.mitsuba.scene import scene_dict
+from nrt.mitsuba.variant import select_variant
 
 SEED_BASE = 7_000_003
 """Re-render seeds start here (datasets use seeds below 10^6)."""
@@ -33,7 +35,7 @@ def render_frames(grids: Mapping | None, effects: dict, data: SceneDataset,
                   envmap: np.ndarray | None = None) -> np.ndarray:
     """Linear RGB renders (F, H, W, 3) of ``grids`` (None: no medium) seen by the cameras
     of ``frames`` of ``data``, each under its own environment (or ``envmap`` for all)."""
-    mi = mitsuba_backend.select_variant("auto")
+    mi = select_variant("auto")
     spec = {"bbox": data.bbox.tolist(), "effects": effects}
     arrays = numpy_grids(grids) if grids is not None else None
     intr = data.intrinsics
@@ -44,7 +46,7 @@ def render_frames(grids: Mapping | None, effects: dict, data: SceneDataset,
         groups.setdefault(key, []).append(pos)
     for env, positions in groups.items():
         radiance = envmap if env < 0 else data.envmaps[env].radiance.cpu().numpy()
-        renderer = mitsuba_backend.ViewRenderer(mi, mitsuba_backend.scene_dict(
+        renderer = ViewRenderer(mi, scene_dict(
             mi, spec, arrays, radiance, intr.width, intr.height,
             fov_x_deg(intr, f"Dataset '{data.root}' (transforms_test.json)"), spp,
             extra_lights=extra_lights))

@@ -289,13 +289,14 @@ def white_of(real: torch.Tensor) -> float:
 def export_medium(folder: Path, grids: Mapping, bbox: torch.Tensor, effects: dict,
                   mitsuba: bool) -> None:
     """``medium_grids.npz`` and (``mitsuba``) ``volumes/`` for one medium."""
-    from nrt.data import mitsuba_backend
+    from nrt.mitsuba.export import write_medium_files
+    from nrt.mitsuba.variant import select_variant
 
     folder.mkdir(parents=True, exist_ok=True)
     save_property_grids(folder / MEDIUM_GRIDS_FILE, grids, bbox)
     if mitsuba:
-        mi = mitsuba_backend.select_variant("auto")
-        mitsuba_backend.write_medium_files(mi, folder / "volumes", grids, bbox, effects)
+        mi = select_variant("auto")
+        write_medium_files(mi, folder / "volumes", grids, bbox, effects)
 
 
 def _fid_crop(settings: SampleSettings, cameras: SceneDataset) -> int:

@@ -4,7 +4,8 @@
 ``int Y_lm Y_l'm' dw = delta``; band ``l`` holds ``2l + 1`` functions and a basis up to
 ``degree`` has ``(degree + 1)^2``, ordered ``(l, m) = (0, 0), (1, -1), (1, 0), (1, 1), ...``.
 They are evaluated from Cartesian unit vectors by the usual recurrences (no angles):
-``(x + i y)^m`` for the azimuth and the associated Legendre recurrence in ``z``.
+``(x + i y)^m`` for the azimuth and the associated Legendre recurrence in ``z``, with the
+Condon-Shortley phase ``(-1)^m`` (:func:`condon_shortley_signs` removes it).
 
 Henyey-Greenstein's Legendre coefficients are ``g^l`` (Funk-Hecke), so for radiance
 ``L(w') = sum c_lm Y_lm(w')`` the in-scattered radiance is exact and needs no sampling:
@@ -28,6 +29,16 @@ def band_of_coefficient(degree: int) -> torch.Tensor:
     """Band ``l`` (long, ``((degree + 1)^2,)``) of every coefficient in basis order."""
     return torch.cat([torch.full((2 * band + 1,), band, dtype=torch.long)
                       for band in range(degree + 1)])
+
+
+def condon_shortley_signs(degree: int) -> torch.Tensor:
+    """``(-1)^m`` (float, ``((degree + 1)^2,)``) of every coefficient in basis order.
+
+    :func:`sh_basis` carries the Condon-Shortley phase (``Y_1,1 = -sqrt(3 / 4 pi) x``);
+    multiplied by these signs it is the real basis without it, graphics' usual table
+    (``Y_1,1 = +sqrt(3 / 4 pi) x``), which the EA field's colour network reads."""
+    return torch.tensor([(-1.0) ** abs(m) for band in range(degree + 1)
+                         for m in range(-band, band + 1)])
 
 
 def sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:

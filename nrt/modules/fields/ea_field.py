@@ -20,6 +20,10 @@ from torch import nn
 from nrt.errors import ConfigError
 from nrt.modules.encodings.activations import DENSITY_ACTIVATIONS
 from nrt.modules.encodings.hash_grid import HashGrid
+from nrt.physics.sh import condon_shortley_signs, num_coefficients, sh_basis
+
+SH_DEGREE = 2
+"""The colour's view directions enter as real SH up to degree 2 (9 values)."""
 
 
 def mlp(n_in: int, hidden: int, n_out: int, layers: int) -> nn.Sequential:
@@ -29,15 +33,6 @@ def mlp(n_in: int, hidden: int, n_out: int, layers: int) -> nn.Sequential:
     for a, b in zip(dims[:-1], dims[1:], strict=True):
         mods += [nn.Linear(a, b), nn.ReLU()]
     return nn.Sequential(*mods, nn.Linear(dims[-1], n_out))
-
-
-def sh_deg2(d: torch.Tensor) -> torch.Tensor:
-    """Real spherical-harmonic basis up to degree 2 (9 values) of unit directions."""
-    x, y, z = d.unbind(-1)
-    return torch.stack((
-        torch.full_like(x, 0.28209479), 0.48860251 * y, 0.48860251 * z, 0.48860251 * x,
-        1.09254843 * x * y, 1.09254843 * y * z, 0.31539157 * (3 * z * z - 1),
-        1.09254843 * x * z, 0.54627421 * (x * x - y * y)), -1)
 
 
 class EAField(nn.Module):
@@ -52,10 +47,13 @@ class EAField(nn.Module):
                               f"{sorted(DENSITY_ACTIVATIONS)}, got '{density_activation}'.")
         self.encoding = HashGrid(**(hash_grid or {}))
         self.density_net = mlp(self.encoding.output_dim, hidden, 1 + geo_features, layers)
-        self.color_net = mlp(geo_features + 9, hidden, 3, layers)
+        self.color_net = mlp(geo_features + num_coefficients(SH_DEGREE), hidden, 3, layers)
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
+        # The colour net reads SH up to degree 2 without the Condon-Shortley phase (the
+        # table it was written with): trained weights depend on these signs.
+        self.register_buffer("sh_signs", condon_shortley_signs(SH_DEGREE), persistent=False)
         self.latent_dim = int(latent_dim)
         self.modulation: nn.Sequential | None = None
         if self.latent_dim > 0:  # built last: the unconditioned parameters draw as before
@@ -97,5 +95,6 @@ class EAField(nn.Module):
         (``latent`` as in :meth:`density`)."""
         h = self._features(self.encode(x), latent)
         sigma = self.activation(h[..., 0] + self.density_bias)
-        rgb = nn.functional.softplus(self.color_net(torch.cat((h[..., 1:], sh_deg2(d)), -1)))
+        view = sh_basis(d, SH_DEGREE) * self.sh_signs.to(d.dtype)
+        rgb = nn.functional.softplus(self.color_net(torch.cat((h[..., 1:], view), -1)))
         return sigma, rgb

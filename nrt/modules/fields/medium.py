@@ -190,7 +190,7 @@ class GroundTruthMedium(Medium):
     ``g`` (Nz, Ny, Nx), in the box ``bbox`` (2, 3). Nothing here is trained.
 
     Chromatic media interpolate sigma_a and sigma_s; grey ones interpolate what Mitsuba's
-    grids hold (:func:`nrt.data.mitsuba_backend.mitsuba_properties`): sigma_t of channel 0
+    grids hold (:func:`nrt.mitsuba.scene.mitsuba_properties`): sigma_t of channel 0
     and the RGB albedo sigma_s / sigma_t (0 where sigma_t is 0)."""
 
     def __init__(self, effects: dict, sigma_a: torch.Tensor, sigma_s: torch.Tensor,

@@ -10,9 +10,10 @@ replay backpropagation), not the differential ratio tracking of the paper's base
   channel of sigma_t, a neutral albedo (``init_albedo``), g = 0.
 - Each step renders one random training view at ``spp`` with gradients; the loss is the
   MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
-  Dr.Jit; ``dr.backward`` gives the grid gradients, which become the ``.grad`` of torch
-  parameters (non-finite entries counted and zeroed), and torch's Adam steps, its rate
-  decaying exponentially to ``lr_final_factor`` of ``lr`` over the run. Values are
+  Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.log_image_loss`); ``dr.backward`` gives
+  the grid gradients, which become the ``.grad`` of torch parameters (non-finite entries
+  counted and zeroed), and torch's Adam steps, its rate decaying exponentially to
+  ``lr_final_factor`` of ``lr`` over the run. Values are
   clamped after each step: ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
 - Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
   ``upsample_at`` of the run (of its steps, or of ``budget_s`` when that comes first)
@@ -166,38 +167,30 @@ class DPTModule(Stage):
     def renderer(self):
         """The Mitsuba scene (``prbvolpath``) of the current grids, built once."""
         if self._renderer is None:
-            from nrt.data import mitsuba_backend
+            from nrt.mitsuba.render import ViewRenderer
+            from nrt.mitsuba.scene import scene_dict
+            from nrt.mitsuba.variant import select_variant
 
-            mi = mitsuba_backend.select_variant("auto")
+            mi = select_variant("auto")
             intr = self._frames.intrinsics
             spec = {"bbox": self.bbox.cpu().tolist(), "effects": self.effects}
-            scene = mitsuba_backend.scene_dict(mi, spec, self.property_arrays(), self._env,
-                                               intr.width, intr.height,
-                                               fov_x_deg(intr, "The training cameras"),
-                                               self.hparams.spp)
-            scene["integrator"] = {"type": "prbvolpath", "max_depth": mitsuba_backend.max_depth(
-                int(self.effects["max_scattering_order"]))}
-            self._renderer = mitsuba_backend.ViewRenderer(mi, scene)
-            self._keys = {name: next(k for k in self._renderer.params.keys()
-                                     if k.endswith(suffix) and "interior" in k)
-                          for name, suffix in MITSUBA_KEYS.items() if name in self.grids()}
+            self._renderer = ViewRenderer(mi, scene_dict(
+                mi, spec, self.property_arrays(), self._env, intr.width, intr.height,
+                fov_x_deg(intr, "The training cameras"), self.hparams.spp,
+                integrator="prbvolpath"))
+            self._keys = self._renderer.medium_keys(
+                {name: suffix for name, suffix in MITSUBA_KEYS.items() if name in self.grids()})
         return self._renderer
 
-    def _push(self, grad: bool) -> None:
-        """Copy the torch grids into the Mitsuba scene (with gradient tracking)."""
-        import drjit as dr
-
-        r = self.renderer()
-        for name, key in self._keys.items():
-            value = r.mi.TensorXf(self.grids()[name].detach().cpu().contiguous().numpy())
-            if grad:
-                dr.enable_grad(value)
-            r.params[key] = value
-        r.params.update()
+    def _grid_values(self) -> dict[str, np.ndarray]:
+        """The torch grids as Mitsuba's parameters (scene key -> array)."""
+        self.renderer()
+        return {key: self.grids()[name].detach().cpu().contiguous().numpy()
+                for name, key in self._keys.items()}
 
     def render_view(self, c2w: torch.Tensor, spp: int, seed: int) -> torch.Tensor:
         """A forward render (H, W, 3) of the current grids from an OpenGL camera."""
-        self._push(grad=False)
+        self.renderer().set_parameters(self._grid_values())
         return torch.from_numpy(self.renderer().render(c2w.cpu().numpy(), spp, seed))
 
     # --------------------------------------------------------------- training
@@ -228,25 +221,19 @@ class DPTModule(Stage):
         Mitsuba's ``seed``), compare it with its photo (MSE after the log1p tonemap) and
         store the loss's gradient as the ``.grad`` of every grid (non-finite entries
         zeroed). Returns the loss."""
-        import drjit as dr
-
-        r = self.renderer()
-        r.set_camera(self._frames.c2w[frame].cpu().numpy())
-        self._push(grad=True)
-        ref = r.mi.TensorXf(np.ascontiguousarray(self._frames.images[frame].cpu().numpy()))
-        img = r.mi.render(r.scene, r.params, spp=int(self.hparams.spp), seed=int(seed))
-        loss = dr.mean(dr.square(dr.log(1 + dr.maximum(img, 0)) - dr.log(1 + ref)), axis=None)
-        dr.backward(loss)
+        loss, grads = self.renderer().log_image_loss(
+            self._frames.c2w[frame].cpu().numpy(), self._frames.images[frame].cpu().numpy(),
+            self._grid_values(), int(self.hparams.spp), int(seed))
         self.nonfinite_grads = 0
         for name, key in self._keys.items():
-            grad = np.asarray(dr.grad(r.params[key]), np.float32)
+            grad = grads[key]
             bad = ~np.isfinite(grad)
             if bad.any():  # counted, then zeroed (NaN must never reach Adam's moments)
                 self.nonfinite_grads += int(bad.sum())
                 grad = np.where(bad, 0.0, grad).astype(np.float32)
             param = self.grids()[name]
             param.grad = torch.from_numpy(grad.reshape(param.shape)).to(param.device)
-        return float(np.asarray(loss).reshape(-1)[0])
+        return loss
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         res = self._resolution_now()

@@ -1,94 +1,22 @@
-"""Mitsuba 3 for nrt: variant choice, the spatially varying HG plugin, scene building.
+"""Mitsuba scene descriptions of nrt scenes: medium, lights, sensor.
 
 Only what a scene's effects call for is built: the ``isotropic`` phase for isotropic
 scenes, Mitsuba's ``hg`` for one g, and the registered ``nrt_hg_grid`` plugin (reading g
 from a grid) when g varies; a one-channel extinction grid when extinction is grey;
-``max_depth = order + 1`` from the maximum scattering order (-1: unlimited).
+``max_depth = order + 1`` from the maximum scattering order (-1: unlimited). Property
+grids are ``[z, y, x]`` arrays; ``mi`` is the module :func:`nrt.mitsuba.variant.select_variant`
+returned.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 
-from nrt.cameras import opengl_to_mitsuba
 from nrt.errors import NrtError
 
 log = logging.getLogger(__name__)
-
-_PROBE = (
-    "import mitsuba as mi; mi.set_variant('{v}'); "
-    "s = mi.load_dict({{'type': 'scene', 'integrator': {{'type': 'path'}}, "
-    "'shape': {{'type': 'sphere'}}, "
-    "'sensor': {{'type': 'perspective', "
-    "'film': {{'type': 'hdrfilm', 'width': 4, 'height': 4}}}}}}); "
-    "mi.render(s, spp=1)"
-)
-_chosen_variant: str | None = None
-
-
-def _variant_works(variant: str) -> bool:
-    """Render a 4x4 image with ``variant`` in a subprocess (a bad LLVM aborts the process)."""
-    try:
-        proc = subprocess.run([sys.executable, "-c", _PROBE.format(v=variant)],
-                              capture_output=True, timeout=300)
-    except subprocess.TimeoutExpired:
-        return False
-    return proc.returncode == 0
-
-
-def _cuda_present() -> bool:
-    try:
-        import torch
-
-        return torch.cuda.is_available()
-    except Exception:  # torch without CUDA support, or no driver
-        return False
-
-
-def select_variant(preferred: str = "auto"):
-    """Set and return the Mitsuba module on the fastest working RGB variant.
-
-    ``preferred='auto'`` tries ``cuda_ad_rgb`` (when CUDA is present), then ``llvm_ad_rgb``
-    (needs LLVM >= 16, e.g. ``apt-get install libllvm19``), then ``scalar_rgb``; the
-    environment variable ``NRT_MITSUBA_VARIANT`` overrides it. The choice is logged.
-    """
-    global _chosen_variant
-    import mitsuba as mi
-
-    preferred = os.environ.get("NRT_MITSUBA_VARIANT", preferred)
-    if _chosen_variant is None:
-        if preferred != "auto":
-            if preferred not in mi.variants():
-                raise NrtError(f"Mitsuba variant '{preferred}' (render.variant or "
-                               f"NRT_MITSUBA_VARIANT) is not one of {mi.variants()}.")
-            candidates = [preferred]
-        else:
-            candidates = (["cuda_ad_rgb"] if _cuda_present() else []) + ["llvm_ad_rgb"]
-        _chosen_variant = next((v for v in candidates if _variant_works(v)), None)
-        if _chosen_variant is None:
-            if preferred != "auto":
-                raise NrtError(f"Mitsuba variant '{preferred}' fails to render here. For "
-                               "llvm_ad_rgb install a newer LLVM (apt-get install libllvm19) "
-                               "or set DRJIT_LIBLLVM_PATH; or use render.variant=auto.")
-            log.warning("llvm_ad_rgb does not work here (LLVM >= 16 missing: apt-get install "
-                        "libllvm19); falling back to the slow scalar_rgb variant.")
-            _chosen_variant = "scalar_rgb"
-        log.info("Mitsuba %s, variant %s", mi.__version__, _chosen_variant)
-    mi.set_variant(_chosen_variant)
-    _register_plugins(mi)
-    return mi
-
-
-def _register_plugins(mi) -> None:
-    from nrt.data.phase_plugin import make_hg_grid_phase
-
-    mi.register_phase("nrt_hg_grid", make_hg_grid_phase(mi))
 
 
 def unit_cube_to_box(mi, bbox: np.ndarray):
@@ -151,15 +79,16 @@ def max_depth(order: int) -> int:
 
 def scene_dict(mi, spec: dict, grids: dict | None, envmap: np.ndarray, width: int,
                height: int, fov_x_deg: float, spp: int,
-               extra_lights: list[dict] | None = None) -> dict:
+               extra_lights: list[dict] | None = None, integrator: str = "volpath") -> dict:
     """A complete scene: envmap (unless all black), medium box (if ``grids``), the scene's
     point emitters and ``extra_lights`` (:func:`emitter_dict`), one sensor. ``spec`` needs
-    only ``bbox`` and ``effects``."""
+    only ``bbox`` and ``effects``; ``integrator`` is ``volpath``, or ``prbvolpath`` for
+    differentiable rendering."""
     bbox = np.asarray(spec["bbox"], float)
     envmap = np.ascontiguousarray(envmap, dtype=np.float32)
     scene = {
         "type": "scene",
-        "integrator": {"type": "volpath",
+        "integrator": {"type": integrator,
                        "max_depth": max_depth(spec["effects"]["max_scattering_order"])},
         "sensor": {
             "type": "perspective", "fov": float(fov_x_deg), "fov_axis": "x",
@@ -217,69 +146,3 @@ def emitter_dict(mi, light: dict) -> dict:
             "beam_width": float(light.get("beam_width_deg", 0.75 * cutoff)),
             "to_world": mi.ScalarTransform4f().look_at(
                 origin=position, target=target, up=up)}
-
-
-class ViewRenderer:
-    """Renders one loaded scene from many OpenGL cameras, reusing the compiled kernel."""
-
-    def __init__(self, mi, scene_description: dict):
-        self.mi = mi
-        self.scene = mi.load_dict(scene_description)
-        self.params = mi.traverse(self.scene)
-        self._key = next(k for k in self.params.keys() if k.endswith("to_world")
-                         and k.startswith("sensor"))
-
-    def set_camera(self, c2w: np.ndarray) -> None:
-        """Place the sensor at the OpenGL camera-to-world ``c2w`` (4, 4)."""
-        self.params[self._key] = self.mi.ScalarTransform4f(opengl_to_mitsuba(c2w).tolist())
-        self.params.update()
-
-    def render(self, c2w: np.ndarray, spp: int, seed: int) -> np.ndarray:
-        """Linear RGB radiance (H, W, 3) float32 seen by camera ``c2w`` (OpenGL)."""
-        self.set_camera(c2w)
-        img = self.mi.render(self.scene, spp=int(spp), seed=int(seed))
-        return np.asarray(img, dtype=np.float32)[..., :3]
-
-
-def write_medium_files(mi, folder: str | Path, grids: dict, bbox, effects: dict) -> dict[str, str]:
-    """Export property grids for Mitsuba: ``sigma_t.vol``, ``albedo.vol`` (and ``g.vol``
-    when g varies) in Mitsuba's binary grid format, and ``medium.xml``, a scene holding the
-    medium box (load it with ``mi.load_file`` or ``<include>`` it; a g grid needs the
-    ``nrt_hg_grid`` plugin, registered by :func:`select_variant`)."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    props = mitsuba_properties(grids, effects)
-    files = {}
-    for key, value in props.items():
-        if isinstance(value, np.ndarray):
-            files[key] = folder / f"{key}.vol"
-            mi.VolumeGrid(np.ascontiguousarray(value, np.float32)).write(str(files[key]))
-    lo, hi = (np.asarray(b, float) for b in np.asarray(bbox))
-    box = (f'<transform name="to_world"><scale value="{_xyz(hi - lo)}"/>'
-           f'<translate value="{_xyz(lo)}"/></transform>')
-    cube = (f'<transform name="to_world"><scale value="{_xyz((hi - lo) / 2)}"/>'
-            f'<translate value="{_xyz((hi + lo) / 2)}"/></transform>')
-
-    def volume(name: str) -> str:
-        return (f'<volume type="gridvolume" name="{name}"><string name="filename" '
-                f'value="{files[name].name}"/>{box}</volume>')
-    phase = effects["phase"]
-    if phase == "isotropic":
-        phase_xml = '<phase type="isotropic"/>'
-    elif phase == "hg":
-        phase_xml = f'<phase type="hg"><float name="g" value="{props["g"]:.6f}"/></phase>'
-    else:
-        phase_xml = f'<phase type="nrt_hg_grid">{volume("g")}</phase>'
-    xml = (f'<scene version="3.0.0">\n  <!-- nrt export: medium box {lo.tolist()} .. '
-           f'{hi.tolist()} -->\n  <shape type="cube" id="medium_box">\n    {cube}\n'
-           '    <bsdf type="null"/>\n    <medium type="heterogeneous" name="interior">\n'
-           f'      {volume("sigma_t")}\n      {volume("albedo")}\n'
-           f'      <float name="scale" value="1"/>\n      {phase_xml}\n    </medium>\n'
-           '  </shape>\n</scene>\n')
-    files["xml"] = folder / "medium.xml"
-    files["xml"].write_text(xml)
-    return {k: str(v) for k, v in files.items()}
-
-
-def _xyz(v) -> str:
-    return ", ".join(f"{float(x):.9g}" for x in v)
