@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import torch
 
+from nrt.losses.objective import Objective, Scenes, member_mean
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.volume import ray_box_intersect
@@ -44,3 +45,18 @@ def transport_loss(light: SHGridLightField, medium, points: torch.Tensor, dirs: 
     """Mean squared difference (units of ``radiance_scale``) of ``L_s`` and its target."""
     target = scattered_target(light, medium, points, dirs, n_samples)
     return torch.mean(((light(points, dirs) - target) / light.radiance_scale) ** 2)
+
+
+class TransportObjective(Objective):
+    """``transport``: ``stage.transport_objective(medium, light, n)`` at
+    ``samples.transport_points`` points; over a family, point i belongs to member i mod K
+    (split evenly), the mean over all points."""
+
+    name = "transport"
+
+    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+        n = int(stage.hparams.samples["transport_points"])
+        if len(scenes) == 1:
+            return stage.transport_objective(*scenes[0], n)
+        return member_mean(torch.arange(n) % len(scenes), lambda k, mask:
+                           stage.transport_objective(*scenes[k], int(mask.sum())))
