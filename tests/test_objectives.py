@@ -58,9 +58,10 @@ def test_a_warm_up_keeps_the_weight_off_until_its_share_of_the_run():
     assert (ramp(5, 0.4999), ramp(5, 0.5), ramp(20, 1.0)) == (0.0, 0.5, 1.0)
 
 
-@pytest.mark.parametrize("value", ["abc", [1, 2], [1, 2, "x"], True, None])
+@pytest.mark.parametrize("value", ["abc", [1, 2], [1, 2, "x"], True, None, float("nan"),
+                                   [0, float("inf"), 10]])
 def test_a_weight_that_is_neither_number_nor_ramp_is_refused(value):
-    with pytest.raises(ConfigError, match=r"losses\.weights\.photo=.*a weight is a number"):
+    with pytest.raises(ConfigError, match=r"losses\.weights\.photo=.*a weight is a finite"):
         WeightSchedule(value, key="losses.weights.photo")
 
 

@@ -14,6 +14,7 @@ step, one for a single scene, one per family member in the generative mode.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from numbers import Real
 from typing import Any
@@ -36,8 +37,9 @@ class WeightSchedule:
         ramp = isinstance(value, Sequence) and not isinstance(value, str)
         items = list(value) if ramp else [value]
         if (ramp and len(items) != 3) or not all(
-                isinstance(v, Real) and not isinstance(v, bool) for v in items):
-            raise ConfigError(f"{key}={value}: a weight is a number or [start, end, "
+                isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v)
+                for v in items):
+            raise ConfigError(f"{key}={value}: a weight is a finite number or [start, end, "
                               "ramp_steps] (linear from start to end over ramp_steps steps).")
         self.value = tuple(float(v) for v in items) if ramp else float(value)
         self.starts_at = float(starts_at)
