@@ -20,14 +20,14 @@ from test_mitsuba_physics import SEEDS, check, make_spec, render_pair, smooth_sk
 from nrt.cameras import Intrinsics, look_at
 from nrt.data import mitsuba_backend
 from nrt.errors import NrtError
-from nrt.losses.transport import scattered_target, transport_loss
+from nrt.losses.transport import scattered_target, transport_loss, unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import (
     check_schedule,
     decaying_lr,
     resample_parameter,
     resolution_at,
 )
-from nrt.modules.fields.medium import GroundTruthMedium, NeuralMedium
+from nrt.modules.fields.medium import GroundTruthMedium, MediumProperties, NeuralMedium
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.modules.fields.voxel_medium import VoxelMedium
 from nrt.modules.renderers.volume import render_view_rays
@@ -205,6 +205,63 @@ def test_transport_target_closed_form_and_loss():
     torch.testing.assert_close(target, exact, rtol=1e-6, atol=1e-9)
     loss = transport_loss(light, medium, x, w, 7)
     torch.testing.assert_close(loss, torch.mean((exact / 2.0) ** 2))
+
+
+class ParametricHomogeneous:
+    """A homogeneous medium filling :data:`BOX` whose ``sigma_a``, ``sigma_s`` (3,) are
+    tensors that may require gradients (float64), HG of ``g``."""
+
+    def __init__(self, sigma_a: torch.Tensor, sigma_s: torch.Tensor, g: float):
+        self.sigma_a, self.sigma_s, self.g = sigma_a, sigma_s, g
+
+    def __call__(self, x: torch.Tensor) -> MediumProperties:
+        lead = x.shape[:-1]
+        sa, ss = self.sigma_a.expand(*lead, 3), self.sigma_s.expand(*lead, 3)
+        return MediumProperties(sa, ss, ss / (sa + ss), torch.full(lead, self.g).to(x))
+
+
+def test_unrolled_inscatter_is_zero_and_its_gradient_is_the_one_step_derivative():
+    """The unrolled in-scattering's value is exactly zero, and its gradient with respect
+    to the medium is unbiased for the derivative of the one-step scattered light's
+    in-scattering ``int f(w . w') albedo S0 (1 - exp(-sigma_t l(x, w'))) dw'`` (a constant
+    uncollided source S0 in band 0; alpha compositing of a constant medium is exact, so
+    only the phase-sampled directions are random). The reference is that integral's
+    autograd derivative by quadrature over 4e5 directions (error ~1e-6); the estimate's
+    standard error comes from 16 independent repetitions, |z| < 5."""
+    light = SHGridLightField(degree=1, resolution=4).double()
+    light.bbox.copy_(BOX)
+    s0 = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    coef = torch.zeros(64, 3, 4, dtype=torch.float64)
+    coef[..., 0] = s0 * math.sqrt(4 * math.pi)
+    light.set_uncollided(coef)
+    g = 0.4
+    x = torch.tensor([[0.3, -0.2, 0.1]], dtype=torch.float64)
+    w = torch.nn.functional.normalize(torch.tensor([[0.2, 0.5, -1.0]], dtype=torch.float64), dim=-1)
+
+    def params():
+        return (torch.tensor([0.3, 0.2, 0.1], dtype=torch.float64, requires_grad=True),
+                torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64, requires_grad=True))
+
+    torch.manual_seed(5)
+    grads = []
+    for _ in range(16):
+        sa, ss = params()
+        medium = ParametricHomogeneous(sa, ss, g)
+        out = unrolled_inscatter(light, medium, x, w, medium(x).g, 2048, 5)
+        assert torch.equal(out, torch.zeros_like(out))
+        out.sum().backward()
+        grads.append(torch.cat([sa.grad, ss.grad]))
+    grads = torch.stack(grads)
+    sa, ss = params()
+    _, length, _ = ray_box_intersect(x.expand_as(QUAD), -QUAD, BOX)  # L(x, w') comes along w'
+    weight = hg_phase(QUAD @ w[0], g) * 4 * math.pi / len(QUAD)
+    exact = (weight[:, None] * ss / (sa + ss) * s0
+             * (1 - torch.exp(-(sa + ss) * length[:, None]))).sum()
+    exact.backward()
+    ref = torch.cat([sa.grad, ss.grad])
+    z = (grads.mean(0) - ref) / (grads.std(0) / math.sqrt(len(grads)))
+    assert z.abs().max() < 5, (grads.mean(0), ref, z)
+    assert (grads.std(0) < ref.abs()).all()  # the estimate is informative, not noise
 
 
 def test_white_furnace_is_solved_by_the_transport_objective_alone():

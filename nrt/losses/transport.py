@@ -11,7 +11,8 @@ itself (:meth:`~nrt.modules.fields.sh_light_field.SHGridLightField.inscatter`). 
 side is evaluated without gradient, a fixed-point (source-iteration) step as neural
 radiosity does: each step carries light across the whole box and adds one scattering
 order, where a differential residual moves information one collocation spacing at a time.
-The medium gets no gradient here; it learns from the photos.
+By default the medium gets no gradient here; it learns from the photos
+(``coupling`` in :mod:`~nrt.modules.stages.rte_split` can add this one).
 """
 
 from __future__ import annotations
@@ -19,32 +20,69 @@ from __future__ import annotations
 import torch
 
 from nrt.losses.objective import Objective, Scenes, member_mean
+from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.physics.compositing import alpha_composite, stratified_samples
+from nrt.physics.phase import sample_phase
 from nrt.physics.volume import ray_box_intersect
 
 
-@torch.no_grad()
 def scattered_target(light: SHGridLightField, medium, points: torch.Tensor, dirs: torch.Tensor,
-                     n_samples: int) -> torch.Tensor:
+                     n_samples: int, medium_grad: bool = False) -> torch.Tensor:
     """The right-hand side above (N, 3) at ``points`` for travel directions ``dirs`` (N, 3),
-    with ``n_samples`` jittered strata; ``medium(x)`` gives :class:`MediumProperties`."""
-    back = -dirs
-    _, t_exit, _ = ray_box_intersect(points, back, light.bbox)
-    t, delta = stratified_samples(torch.zeros_like(t_exit), t_exit, n_samples, jitter=True)
-    x = points.unsqueeze(1) + t.unsqueeze(-1) * back.unsqueeze(1)
-    w = dirs.unsqueeze(1).expand_as(x)
-    props = medium(x)
-    source = props.albedo * light.inscatter(x, w, props.g, with_uncollided=True)
-    color, _ = alpha_composite(props.sigma_t, delta, source, torch.zeros_like(points))
-    return color
+    with ``n_samples`` jittered strata; ``medium(x)`` gives :class:`MediumProperties`.
+    Without gradient, or with gradient to the medium only (``medium_grad``)."""
+    with torch.set_grad_enabled(medium_grad and torch.is_grad_enabled()):
+        back = -dirs
+        _, t_exit, _ = ray_box_intersect(points, back, light.bbox)
+        t, delta = stratified_samples(torch.zeros_like(t_exit), t_exit, n_samples, jitter=True)
+        x = points.unsqueeze(1) + t.unsqueeze(-1) * back.unsqueeze(1)
+        w = dirs.unsqueeze(1).expand_as(x)
+        props = medium(x)
+        source = props.albedo * light.inscatter(x, w, props.g, with_uncollided=True,
+                                                trainable=False)
+        color, _ = alpha_composite(props.sigma_t, delta, source, torch.zeros_like(points))
+        return color
 
 
 def transport_loss(light: SHGridLightField, medium, points: torch.Tensor, dirs: torch.Tensor,
-                   n_samples: int) -> torch.Tensor:
-    """Mean squared difference (units of ``radiance_scale``) of ``L_s`` and its target."""
-    target = scattered_target(light, medium, points, dirs, n_samples)
-    return torch.mean(((light(points, dirs) - target) / light.radiance_scale) ** 2)
+                   n_samples: int, to_medium: float = 0.0) -> torch.Tensor:
+    """Mean squared difference (units of ``radiance_scale``) of ``L_s`` and its target. The
+    light learns from it; with ``to_medium > 0`` the medium does too, through the target
+    with the light held fixed, its gradient scaled by ``to_medium`` (a penalty coupling).
+    That gradient takes the residual from a second, independent estimate of the target
+    (:func:`~nrt.losses.unbiased.unbiased_square`): the square of one estimate would also
+    pull the medium toward less Monte Carlo variance."""
+    target = scattered_target(light, medium, points, dirs, n_samples, to_medium > 0)
+    pred = light(points, dirs)
+    scale = light.radiance_scale
+    loss = torch.mean(((pred - target.detach()) / scale) ** 2)
+    if to_medium > 0:
+        other = scattered_target(light, medium, points, dirs, n_samples)
+        medium_part = unbiased_square((pred - other) / scale, (pred.detach() - target) / scale)
+        loss = loss + to_medium * (medium_part - medium_part.detach())
+    return loss
+
+
+def unrolled_inscatter(light: SHGridLightField, medium, x: torch.Tensor, w: torch.Tensor,
+                       g: torch.Tensor | None, n_dirs: int, n_samples: int) -> torch.Tensor:
+    """A gradient path from the scattered light to the medium, zero in value (..., 3).
+
+    The scattered light's in-scattering at ``x`` for travel directions ``w`` is estimated
+    from ``n_dirs`` phase-sampled directions ``w'`` with ``L_s(x, w')`` unrolled by one
+    source-iteration step (:func:`scattered_target` with gradient to the medium): the first
+    term of the Neumann series of ``dL_s / d medium``. Added to the exact SH in-scattering,
+    whose coefficients carry no gradient, it lets the photos see how the medium shapes the
+    light scattered more than once.
+    """
+    lead = x.shape[:-1]
+    pts = x.reshape(-1, 1, 3).expand(-1, n_dirs, 3).reshape(-1, 3)
+    travel = w.reshape(-1, 1, 3).expand(-1, n_dirs, 3).reshape(-1, 3)
+    g_k = None if g is None else g.detach().reshape(-1, 1).expand(-1, n_dirs).reshape(-1)
+    dirs = sample_phase(travel, g_k, torch.rand(len(pts), 2, device=x.device))
+    est = scattered_target(light, medium, pts, dirs, n_samples, medium_grad=True)
+    est = est.reshape(*lead, n_dirs, 3).mean(-2)
+    return est - est.detach()
 
 
 class TransportObjective(Objective):

@@ -43,7 +43,7 @@ import torch
 
 from nrt.losses.objective import Objective, build_objectives
 from nrt.losses.photo import PhotoObjective, check_tonemap, photo_loss
-from nrt.losses.transport import TransportObjective, transport_loss
+from nrt.losses.transport import TransportObjective, transport_loss, unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
 from nrt.modules.fields.voxel_medium import Voxels
@@ -92,7 +92,7 @@ class SplitRTEModule(RadiativeTransferStage):
                  weights: dict, samples: dict, lr: dict, lr_final_factor: float = 0.1,
                  light_warmup: float = 0.05, photo_tonemap: str = "log",
                  sun: dict | None = None, eval_chunk: int = 4096,
-                 property_resolution: int | None = None):
+                 property_resolution: int | None = None, coupling: dict | None = None):
         super().__init__(effects, density, sun, property_resolution)
         make_light = as_factory(light_field, "light_field",
                                 legacy_config("nrt.modules.fields.sh_light_field.SHGridLightField"))
@@ -113,6 +113,8 @@ class SplitRTEModule(RadiativeTransferStage):
                            effects=effects)
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
+        self.coupling = {"photo_to_light": 0.0, "transport_to_medium": 0.0,
+                         "unrolled_directions": 0, "unrolled_samples": 8, **(coupling or {})}
         self._ea_ckpt = density.get("ea_ckpt")
         self._baked = False
         self._uncollided_fresh = False
@@ -164,7 +166,14 @@ class SplitRTEModule(RadiativeTransferStage):
             if self.lights is not None and len(self.lights):
                 total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
                                                  medium.bbox, int(s["shadow_steps"]), jitter=True)
-            return total + light.inscatter(x, w, props.g, trainable=False)
+            total = total + light.inscatter(x, w, props.g,
+                                            trainable=float(self.coupling["photo_to_light"]))
+            n_dirs = int(self.coupling.get("unrolled_directions", 0))
+            if n_dirs > 0 and torch.is_grad_enabled():
+                total = total + unrolled_inscatter(
+                    light, medium, x, w, props.g, n_dirs,
+                    int(self.coupling.get("unrolled_samples", 8)))
+            return total
         return source
 
     @torch.no_grad()
@@ -202,8 +211,11 @@ class SplitRTEModule(RadiativeTransferStage):
         bbox = light.bbox
         pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
         dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
-        return transport_loss(light, detached(medium), pts, dirs,
-                              int(self.hparams.samples["transport_samples"]))
+        photo_on = self.learns_medium and self.progress() >= self.hparams.light_warmup
+        to_medium = float(self.coupling["transport_to_medium"]) if photo_on else 0.0
+        medium = self.medium.voxels() if to_medium > 0 else detached(medium)
+        return transport_loss(light, medium, pts, dirs,
+                              int(self.hparams.samples["transport_samples"]), to_medium)
 
     def photo_objective(self, medium, light: ScatteredLightField, rays: dict) -> torch.Tensor:
         """The photo loss of the camera ``rays`` (``origins``, ``dirs``, ``background``,
