@@ -37,10 +37,11 @@ from nrt.cli.train import resolve_ea_checkpoint
 from nrt.data.family import ensure_family
 from nrt.data.grids import load_property_grids
 from nrt.errors import ConfigError, NrtError
+from nrt.losses.objective import member_mean
 from nrt.metrics import property_mse
 from nrt.modules.stages.ea import EAModule
 from nrt.modules.stages.generative_ea import load_generative_ea
-from nrt.modules.stages.generative_rte import GenerativeRTEModule, member_mean
+from nrt.modules.stages.generative_rte import GenerativeRTEModule
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
 

@@ -98,6 +98,7 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     ("ea", ("budget.ea.steps=-3",), "budget.ea.steps=-3"),
     ("ea", ("budget_s=-5",), "budget_s=-5"),
     ("ea", ("model.field.density_activation=relu",), "model.field.density_activation"),
+    ("rte", ("init=none", "+losses.weights.foo=1"), "losses.weights has unknown objectives"),
 ])
 def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, needle):
     """What the config alone decides (no EA run to start from; stage 2 on photos of
@@ -137,6 +138,9 @@ def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, n
     (("stage=rte", "init=none", PAPER, "model.medium.init_albedo=1.5"), "init_albedo"),
     (("stage=rte", "init=none", PAPER, "budget.rte.light_layers=0"), "budget.rte.light_layers"),
     (("stage=rte", "init=none", "scene.effects.phase=rayleigh"), "scene.effects.phase"),
+    (("stage=rte", "init=none", "+losses.weights.foo=1"), "unknown objectives ['foo']"),
+    (("stage=rte", "init=none", PAPER, "+losses.weights.photo=1"), "unknown objectives ['photo']"),
+    (("stage=rte", "init=none", "losses.weights.photo=[1,2]"), "losses.weights.photo=[1, 2]"),
 ])
 def test_config_mistakes_are_refused_before_data(overrides, needle):
     """The checks nrt-train makes before it renders or loads data (the budget's counts,
@@ -291,6 +295,17 @@ def count_calls(monkeypatch, module, name: str) -> list:
     return calls
 
 
+def spy_objectives(monkeypatch, model) -> list[tuple[int, str]]:
+    """(step, name) of every loss the model's objectives compute from now on."""
+    called: list[tuple[int, str]] = []
+    for name, unit in model.objectives.items():
+        def spy(stage, batch, scenes, name=name, original=unit.loss):
+            called.append((stage.global_step, name))
+            return original(stage, batch, scenes)
+        monkeypatch.setattr(unit, "loss", spy)
+    return called
+
+
 DIRECT_LIGHT_CASES = [  # (model.sun.threshold, scene.effects.emitters, direct light built)
     ("null", "[]", False),
     ("10.0", "[]", True),
@@ -315,14 +330,11 @@ def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
 ])
 def test_only_weighted_objectives_are_built(tmp_path, monkeypatch, weights, built):
     """A zero weight removes an objective entirely (a ramp starting at 0 included)."""
-    model, dm = build(tmp_path, "model.sun.threshold=null")
-    model.hparams.weights = weights
-    called: list[str] = []
-    original = model.objective
-    monkeypatch.setattr(model, "objective",
-                        lambda name, batch: called.append(name) or original(name, batch))
+    model, dm = build(tmp_path, "model.sun.threshold=null",
+                      *(f"losses.weights.{k}={v}".replace(" ", "") for k, v in weights.items()))
+    called = spy_objectives(monkeypatch, model)
     fit(model, dm, 1)
-    assert set(called) == built
+    assert {name for _, name in called} == built
 
 
 @pytest.mark.slow

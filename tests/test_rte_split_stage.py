@@ -18,6 +18,7 @@ from test_rte_paper_stage import (
     count_calls,
     fit,
     hard_case_overrides,
+    spy_objectives,
     trains_finite,
 )
 
@@ -153,10 +154,7 @@ def test_medium_waits_for_the_light_field_and_grows_coarse_to_fine(tmp_path, mon
     change (:mod:`nrt.modules.fields.coarse_to_fine`)."""
     model, dm = build(tmp_path, "budget.rte.light_warmup=0.5",
                       "budget.rte.medium_resolutions=[2,4]", "budget.rte.medium_upsample_at=[0.5]")
-    called: list[tuple[int, str]] = []
-    original = model.objective
-    monkeypatch.setattr(model, "objective", lambda name, batch, medium: called.append(
-        (model.global_step, name)) or original(name, batch, medium))
+    called = spy_objectives(monkeypatch, model)
     fit(model, dm, 10)
     photo_steps = [s for s, name in called if name == "photo"]
     assert photo_steps and min(photo_steps) == 5

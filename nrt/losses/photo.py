@@ -12,8 +12,12 @@ from __future__ import annotations
 import torch
 
 from nrt.errors import ConfigError
+from nrt.losses.objective import Objective, Scenes, member_mean
 
 TONEMAPS = ("log", "linear")
+
+RAY_KEYS = ("origins", "dirs", "background", "rgb")
+"""What the photo objective reads of a ray batch."""
 
 
 def check_tonemap(tonemap: str) -> None:
@@ -31,3 +35,19 @@ def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor
                            - torch.log1p(photos.clamp_min(0) / scale)) ** 2)
     check_tonemap(tonemap)
     return torch.mean(((rendered - photos) / scale) ** 2)
+
+
+class PhotoObjective(Objective):
+    """``photo``: the first ``samples.photo_rays`` rays of the batch through
+    ``stage.photo_objective(medium, light, rays)``; over a family, each ray through its
+    ``member``'s scene, the mean over all rays."""
+
+    name = "photo"
+
+    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+        n = int(stage.hparams.samples["photo_rays"])
+        rays = {key: batch[key][:n] for key in RAY_KEYS}
+        if len(scenes) == 1:
+            return stage.photo_objective(*scenes[0], rays)
+        return member_mean(batch["member"][:n].cpu(), lambda k, mask: stage.photo_objective(
+            *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))

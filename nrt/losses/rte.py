@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import torch
 
+from nrt.losses.objective import Objective, Scenes
+from nrt.losses.samplers import collocation_points
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.light_field import LightField
 from nrt.modules.fields.medium import Medium
@@ -50,3 +52,19 @@ def rte_loss(light: LightField, medium: Medium, points: torch.Tensor, n_dirs: in
     directions per estimate."""
     return unbiased_square(*rte_residuals(light, medium, points, n_dirs, detach_inscatter,
                                           direct_source))
+
+
+class RTEObjective(Objective):
+    """``rte``: the residual at ``samples.collocation_points`` points, ``density_fraction``
+    of them drawn like the extinction (``stage.density_sampler()``), with
+    ``inscatter_directions`` per estimate and the known lights' first scattering
+    (``stage.direct_source()``)."""
+
+    name = "rte"
+
+    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+        [(medium, light)], s = scenes, stage.hparams.samples
+        pts = collocation_points(int(s["collocation_points"]), light.bbox,
+                                 stage.density_sampler(), float(s["density_fraction"]))
+        return rte_loss(light, medium, pts, int(s["inscatter_directions"]),
+                        stage.hparams.detach_inscatter, stage.direct_source())

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import torch
 
+from nrt.losses.objective import Objective, Scenes, member_mean
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.physics.compositing import alpha_composite, stratified_samples
@@ -82,3 +83,18 @@ def unrolled_inscatter(light: SHGridLightField, medium, x: torch.Tensor, w: torc
     est = scattered_target(light, medium, pts, dirs, n_samples, medium_grad=True)
     est = est.reshape(*lead, n_dirs, 3).mean(-2)
     return est - est.detach()
+
+
+class TransportObjective(Objective):
+    """``transport``: ``stage.transport_objective(medium, light, n)`` at
+    ``samples.transport_points`` points; over a family, point i belongs to member i mod K
+    (split evenly), the mean over all points."""
+
+    name = "transport"
+
+    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+        n = int(stage.hparams.samples["transport_points"])
+        if len(scenes) == 1:
+            return stage.transport_objective(*scenes[0], n)
+        return member_mean(torch.arange(n) % len(scenes), lambda k, mask:
+                           stage.transport_objective(*scenes[k], int(mask.sum())))

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import torch
 
+from nrt.losses.objective import Objective, Scenes
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.light_field import LightField
 from nrt.modules.fields.medium import Medium
@@ -39,3 +40,19 @@ def vre_loss(light: LightField, medium: Medium, origins: torch.Tensor, dirs: tor
                           n_dirs, True, detach_inscatter, direct_source, estimates=2)
     return unbiased_square((i_a - pixels[hit]) / light.radiance_scale,
                            (i_b - pixels[hit]) / light.radiance_scale)
+
+
+class VREObjective(Objective):
+    """``vre``: the first ``samples.vre_rays`` rays of the batch rendered with
+    ``vre_samples`` strata and ``vre_directions`` in-scattering directions per estimate,
+    with the known lights' first scattering (``stage.direct_source()``)."""
+
+    name = "vre"
+
+    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+        [(medium, light)], s = scenes, stage.hparams.samples
+        n = int(s["vre_rays"])
+        return vre_loss(light, medium, batch["origins"][:n], batch["dirs"][:n],
+                        batch["rgb"][:n], batch["background"][:n], int(s["vre_samples"]),
+                        int(s["vre_directions"]), stage.hparams.detach_inscatter,
+                        stage.direct_source())

@@ -50,7 +50,7 @@ from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.modules.stages.components import as_factory, factory_config
 from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
-from nrt.modules.stages.rte_split import RAY_KEYS, SplitRTEModule, detached
+from nrt.modules.stages.rte_split import SplitRTEModule, detached
 from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.volume import cell_centres
 
@@ -58,18 +58,6 @@ log = logging.getLogger(__name__)
 
 FITS = ("Generative stage 2 (stage=rte mode=generative) takes the latent light field and "
         "medium that conf/mode_stage/generative_rte.yaml sets")
-
-
-def member_mean(members: torch.Tensor,
-                loss_of: Callable[[int, torch.Tensor], torch.Tensor]) -> torch.Tensor:
-    """The mean over items of a loss computed member by member: ``sum_k (n_k / n)
-    loss_of(k, mask_k)``, with ``members`` (n,) each item's member and ``loss_of`` a mean
-    over the items of ``mask_k``."""
-    total = torch.zeros(())
-    for k in members.unique().tolist():
-        mask = members == k
-        total = total + mask.float().mean() * loss_of(k, mask)
-    return total
 
 
 class GenerativeRTEModule(SplitRTEModule):
@@ -183,20 +171,6 @@ class GenerativeRTEModule(SplitRTEModule):
         """``latent_prior_weight * mean_k |z_k|^2``: the codes' Gaussian prior, as a loss."""
         return self.hparams.latent_prior_weight * self.codes.square().sum(-1).mean()
 
-    def mixed_objective(self, name: str, batch: dict, scenes: list) -> torch.Tensor:
-        """Objective ``name`` over the members: the photo rays grouped by their ``member``,
-        the transport points split evenly (point i belongs to member i mod K)."""
-        s = self.hparams.samples
-        if name == "transport":
-            n = int(s["transport_points"])
-            members = torch.arange(n) % len(scenes)
-            return member_mean(members, lambda k, mask: self.transport_objective(
-                *scenes[k], int(mask.sum())))
-        n = int(s["photo_rays"])
-        rays = {key: batch[key][:n] for key in RAY_KEYS}
-        return member_mean(batch["member"][:n].cpu(), lambda k, mask: self.photo_objective(
-            *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))
-
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         self._update_resolution()
@@ -209,7 +183,7 @@ class GenerativeRTEModule(SplitRTEModule):
             self._uncollided_fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives(lambda name: self.mixed_objective(name, batch, scenes))
+        total = self.backward_objectives(batch, scenes)
         prior = self.latent_prior()
         if "photo" in self.active_weights():  # the codes' regulariser, with their data term
             self.manual_backward(prior)

@@ -1,12 +1,13 @@
 """Stage 2: joint neural radiative transfer (``nrt-train stage=rte``; ``stage=forward``).
 
 Trains the light field ``L_theta`` and the medium ``M_phi`` (modulating the stage-1 EA
-density) on ``L = w_rte L_RTE + w_bc L_BC + w_obs L_obs + w_vre L_VRE``. Only objectives
-with a non-zero weight are built, and only the terms the scene's effects declare (no g
-without HG, grey coefficients without chromatic extinction, explicit first scattering
-only of the emitters and sun the scene has). Each objective is backpropagated on its own,
-so the time per step splits by objective (``time/step_<name>_s``); gradients accumulate
-and one Adam step follows.
+density) on ``L = w_rte L_RTE + w_bc L_BC + w_obs L_obs + w_vre L_VRE``, the objectives
+:data:`PAPER_OBJECTIVES` (units of :mod:`nrt.losses.objective`, weights from
+``losses.weights``). Only objectives with a positive weight are evaluated, and only the
+terms the scene's effects declare (no g without HG, grey coefficients without chromatic
+extinction, explicit first scattering only of the emitters and sun the scene has). Each
+objective is backpropagated on its own, so the time per step splits by objective
+(``time/step_<name>_s``); gradients accumulate and one Adam step follows.
 
 Forward mode (``stage=forward``): the medium is the dataset's ground truth and only the
 light field learns (RTE + BC), which validates the solver against Mitsuba's renders.
@@ -16,23 +17,19 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import NrtError
-from nrt.losses.boundary import boundary_loss
-from nrt.losses.observation import observation_loss
-from nrt.losses.rte import rte_loss
-from nrt.losses.samplers import (
-    DensityPointSampler,
-    EnvironmentDirectionSampler,
-    boundary_samples,
-    collocation_points,
-)
-from nrt.losses.vre import vre_loss
+from nrt.losses.boundary import BoundaryObjective
+from nrt.losses.objective import Objective, Scenes, build_objectives
+from nrt.losses.observation import ObservationObjective
+from nrt.losses.rte import RTEObjective
+from nrt.losses.samplers import DensityPointSampler, EnvironmentDirectionSampler
+from nrt.losses.vre import VREObjective
 from nrt.metrics import psnr
 from nrt.modules.fields.medium import GroundTruthMedium, Medium
 from nrt.modules.fields.protocols import ModulatedMedium, RadianceField, build
@@ -40,7 +37,6 @@ from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import DirectSource, transmitted_background, vre_render
 from nrt.modules.stages.components import as_factory, factory_config, legacy_config
 from nrt.modules.stages.ea import load_ea_field
-from nrt.modules.stages.schedules import scheduled
 from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
 from nrt.physics.envmap import EnvironmentMap, texel_directions
@@ -49,7 +45,9 @@ from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
 
-OBJECTIVES = ("rte", "bc", "obs", "vre")
+PAPER_OBJECTIVES: Sequence[type[Objective]] = (RTEObjective, BoundaryObjective,
+                                               ObservationObjective, VREObjective)
+"""The paper formulation's objectives, by their ``losses.weights`` names rte, bc, obs, vre."""
 DENSITY_SOURCES = ("ea", "none", "ground_truth")
 
 
@@ -90,24 +88,24 @@ class RadiativeTransferStage(Stage):
         self.env_rest: EnvironmentMap | None = None  # E without its sun: the inflow of L
         self.env_sun: EnvironmentMap | None = None  # the sun's part E - E_rest
         self.lights: DirectLights | None = None
-        self._env_sampler: EnvironmentDirectionSampler | None = None
+        self.env_sampler: EnvironmentDirectionSampler | None = None  # directions like env_rest
+        self.objectives: dict[str, Objective] = {}  # by name, in the order of losses.weights
         self._baselines: dict[tuple[int | None, int], dict[str, float]] = {}
 
-    @staticmethod
-    def check_objectives(weights: dict, objectives: tuple[str, ...], hint: str = "") -> None:
-        """``losses.weights`` names only objectives this formulation has."""
-        unknown = set(weights) - set(objectives)
-        if unknown:
-            raise NrtError(f"losses.weights has unknown objectives {sorted(unknown)}; the "
-                           f"objectives are {list(objectives)}{hint}.")
+    def active_weights(self) -> dict[str, float]:
+        """The objectives whose weight is positive at this step, with their weights."""
+        step, progress = self.global_step, self.progress()
+        return {name: w for name, unit in self.objectives.items()
+                if (w := unit.weight(step, progress)) > 0}
 
-    def backward_objectives(self, loss_of) -> torch.Tensor:
-        """Backpropagate each active objective (``self.active_weights()``) times its weight,
-        logging its value and seconds; returns the weighted total (detached)."""
+    def backward_objectives(self, batch: dict, scenes: Scenes) -> torch.Tensor:
+        """Backpropagate each active objective (:meth:`active_weights`) on ``batch`` over
+        ``scenes`` times its weight, logging its value and seconds; returns the weighted
+        total (detached)."""
         total = torch.zeros((), device=self.device)
         for name, weight in self.active_weights().items():
             start = time.perf_counter()
-            loss = loss_of(name)
+            loss = self.objectives[name].loss(self, batch, scenes)
             self.manual_backward(weight * loss)
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
@@ -158,7 +156,7 @@ class RadiativeTransferStage(Stage):
         self.env_rest = rest.to(self.device)
         self.env_sun = EnvironmentMap(env.radiance - rest.radiance).to(self.device) \
             if sun_dirs.shape[0] else None
-        self._env_sampler = EnvironmentDirectionSampler(rest)
+        self.env_sampler = EnvironmentDirectionSampler(rest)
 
     def direct_source(self) -> DirectSource | None:
         """First scattering of the known lights (emitters, suns), or None without any."""
@@ -171,7 +169,7 @@ class RadiativeTransferStage(Stage):
                                     lambda p: self.medium(p).sigma_t, self.medium.bbox, n_steps)
         return source
 
-    def _sunless(self, dirs: torch.Tensor) -> torch.Tensor:
+    def sunless(self, dirs: torch.Tensor) -> torch.Tensor:
         """Mask of view directions that do not look into the sun's texels (all without one)."""
         if self.env_sun is None:
             return torch.ones(dirs.shape[0], dtype=torch.bool, device=dirs.device)
@@ -278,7 +276,7 @@ class RTEModule(RadiativeTransferStage):
         light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        self.check_objectives(weights, OBJECTIVES)
+        self.objectives = build_objectives(weights, PAPER_OBJECTIVES)
         check_learning_rates(lr, "model.lr", ("light", "medium")
                              + (("density",) if density.get("train") else ()))
         self.light: RadianceField = build(make_light, RadianceField, "light_field", FITS)
@@ -330,35 +328,10 @@ class RTEModule(RadiativeTransferStage):
         return self._density_sampler
 
     # --------------------------------------------------------------- training
-    def objective(self, name: str, batch: dict) -> torch.Tensor:
-        """The unweighted loss of objective ``name`` on fresh samples and ``batch``."""
-        s, bbox, source = self.hparams.samples, self.light.bbox, self.direct_source()
-        if name == "rte":
-            pts = collocation_points(int(s["collocation_points"]), bbox, self.density_sampler(),
-                                     float(s["density_fraction"]))
-            return rte_loss(self.light, self.medium, pts, int(s["inscatter_directions"]),
-                            self.hparams.detach_inscatter, source)
-        if name == "bc":
-            pts, w = boundary_samples(int(s["boundary_points"]), bbox, self._env_sampler,
-                                      float(s["env_fraction"]))
-            return boundary_loss(self.light, pts, w, self.env_rest.lookup(-w).to(pts.dtype))
-        if name == "obs":  # rays into the sun see it through the medium: left to the VRE
-            keep = self._sunless(batch["dirs"])
-            return observation_loss(self.light, batch["origins"][keep], batch["dirs"][keep],
-                                    batch["rgb"][keep])
-        n = int(s["vre_rays"])
-        return vre_loss(self.light, self.medium, batch["origins"][:n], batch["dirs"][:n],
-                        batch["rgb"][:n], batch["background"][:n], int(s["vre_samples"]),
-                        int(s["vre_directions"]), self.hparams.detach_inscatter, source)
-
-    def active_weights(self) -> dict[str, float]:
-        step = self.global_step
-        return {k: w for k, v in self.hparams.weights.items() if (w := scheduled(v, step)) > 0}
-
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives(lambda name: self.objective(name, batch))
+        total = self.backward_objectives(batch, [(self.medium, self.light)])
         if self.hparams.grad_clip:
             self.clip_gradients(opt, gradient_clip_val=self.hparams.grad_clip)
         opt.step()

@@ -12,7 +12,7 @@ scattered at least once, and only the second is learned:
   :class:`~nrt.modules.fields.sh_light_field.SHGridLightField`, SH coefficients on a grid, zero on
   inflow and smooth in direction, whose in-scattering is exact for HG.
 
-Two objectives (``losses.weights``):
+Two objectives (:data:`SPLIT_OBJECTIVES`, weights from ``losses.weights``):
 
 - ``photo``: the training photos against the VRE of the camera rays with that
   in-scattering (:mod:`~nrt.losses.photo`); it trains the medium. The scattered light's
@@ -37,12 +37,13 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
-from nrt.losses.photo import check_tonemap, photo_loss
-from nrt.losses.transport import transport_loss, unrolled_inscatter
+from nrt.losses.objective import Objective, build_objectives
+from nrt.losses.photo import PhotoObjective, check_tonemap, photo_loss
+from nrt.losses.transport import TransportObjective, transport_loss, unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
 from nrt.modules.fields.voxel_medium import Voxels
@@ -58,10 +59,8 @@ from nrt.physics.sky_light import sky_inscatter, uncollided_sh
 
 log = logging.getLogger(__name__)
 
-OBJECTIVES = ("photo", "transport")
-
-RAY_KEYS = ("origins", "dirs", "background", "rgb")
-"""What the photo objective reads of a ray batch."""
+SPLIT_OBJECTIVES: Sequence[type[Objective]] = (PhotoObjective, TransportObjective)
+"""The split formulation's objectives (``losses.weights`` names photo, transport)."""
 
 FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
         "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
@@ -103,8 +102,11 @@ class SplitRTEModule(RadiativeTransferStage):
         light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        self.check_objectives(weights, OBJECTIVES,
-                              " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
+        self.objectives = build_objectives(
+            weights, SPLIT_OBJECTIVES, {"photo": light_warmup},
+            " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
+        if not self.learns_medium:  # forward mode: the photos have no medium to teach
+            self.objectives.pop("photo", None)
         check_tonemap(photo_tonemap)
         check_learning_rates(lr, "model.lr", ("light", "medium"))
         self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
@@ -159,7 +161,7 @@ class SplitRTEModule(RadiativeTransferStage):
 
         def source(x, w, props):
             total = sky_inscatter(x, w, props.g, sigma_t, medium.bbox, self.env_rest,
-                                  self._env_sampler, int(s["sky_env_directions"]),
+                                  self.env_sampler, int(s["sky_env_directions"]),
                                   int(s["sky_phase_directions"]), int(s["shadow_steps"]))
             if self.lights is not None and len(self.lights):
                 total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
@@ -183,7 +185,7 @@ class SplitRTEModule(RadiativeTransferStage):
         pts = light.cache_points()
         chunk = int(s.get("uncollided_chunk", 2048))
         coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, light.bbox,
-                                        self.env_rest, self._env_sampler, self.lights,
+                                        self.env_rest, self.env_sampler, self.lights,
                                         light.degree, int(s["uncollided_directions"]),
                                         int(s["shadow_steps"]))
                           for i in range(0, len(pts), chunk)])
@@ -223,18 +225,6 @@ class SplitRTEModule(RadiativeTransferStage):
                                 self.inscatter(medium, light))
         return photo_loss(pred, rays["rgb"], light.radiance_scale, self.hparams.photo_tonemap)
 
-    def objective(self, name: str, batch: dict, medium) -> torch.Tensor:
-        s = self.hparams.samples
-        if name == "transport":
-            return self.transport_objective(medium, self.light, int(s["transport_points"]))
-        n = int(s["photo_rays"])
-        return self.photo_objective(medium, self.light, {k: batch[k][:n] for k in RAY_KEYS})
-
-    def active_weights(self) -> dict[str, float]:
-        photo_on = self.progress() >= self.hparams.light_warmup and self.learns_medium
-        return {k: float(w) for k, w in self.hparams.weights.items()
-                if float(w) > 0 and (k != "photo" or photo_on)}
-
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         self._update_resolution()
@@ -245,7 +235,7 @@ class SplitRTEModule(RadiativeTransferStage):
             self._uncollided_fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives(lambda name: self.objective(name, batch, medium))
+        total = self.backward_objectives(batch, [(medium, self.light)])
         if self.learns_medium:
             self.log("train/medium_resolution", float(self.medium.resolution))
         opt.step()

@@ -1,6 +1,6 @@
-"""Schedules over a run's course, read by the stages: loss weights that ramp over steps,
-and the run's progress in [0, 1] (of its steps, or of its time budget) that
-coarse-to-fine grids, warm-ups and learning-rate decays follow."""
+"""The run's progress in [0, 1] (of its steps, or of its time budget), read by the stages:
+coarse-to-fine grids, warm-ups, learning-rate decays and objective weights
+(:class:`nrt.losses.objective.WeightSchedule`) follow it."""
 
 from __future__ import annotations
 
@@ -26,12 +26,3 @@ def training_progress(trainer) -> float:
     if clock is not None and clock.budget_s:
         done = max(done, clock.seconds() / clock.budget_s)
     return min(done, 1.0)
-
-
-def scheduled(value: float | list, step: int) -> float:
-    """A constant, or ``[start, end, ramp_steps]``: linear from start to end over the first
-    ``ramp_steps`` steps, then constant (threestudio's ``lambda_*`` ramps)."""
-    if isinstance(value, list | tuple):
-        start, end, steps = value
-        return float(start + (end - start) * min(step / max(steps, 1), 1.0))
-    return float(value)

@@ -1,0 +1,110 @@
+"""Objectives as units: a name, a weight schedule and a loss (threestudio's ``lambda_*``).
+
+A stage holds its objectives by name (:func:`build_objectives`, from ``losses.weights``) and
+each step backpropagates ``weight(step, progress) * loss`` of those whose weight is
+positive; the others are not evaluated (nor their samples drawn) that step. A weight is a
+number or ``[start, end, ramp_steps]`` (linear over the first ``ramp_steps`` steps, then
+constant), and may be off until a share of the run has passed (``starts_at``: the split
+stage's photo objective waits for ``light_warmup``).
+
+An objective's :meth:`Objective.loss` reads the stage it serves (its sample counts, the
+known lights, the samplers) and is taken over ``scenes``: the (medium, light) pairs of the
+step, one for a single scene, one per family member in the generative mode.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from numbers import Real
+from typing import Any
+
+import torch
+
+from nrt.errors import ConfigError
+
+Scenes = Sequence[tuple[Any, Any]]
+"""The (medium, light) pairs an objective is taken over."""
+
+
+class WeightSchedule:
+    """An objective's weight at a step and a point of the run's progress in [0, 1]:
+    ``value`` constant, or ``[start, end, ramp_steps]`` linear from start to end over the
+    first ``ramp_steps`` steps, then constant; 0 while ``progress < starts_at``."""
+
+    def __init__(self, value: float | Sequence[float], starts_at: float = 0.0,
+                 key: str = "losses.weights"):
+        ramp = isinstance(value, Sequence) and not isinstance(value, str)
+        items = list(value) if ramp else [value]
+        if (ramp and len(items) != 3) or not all(
+                isinstance(v, Real) and not isinstance(v, bool) and math.isfinite(v)
+                for v in items):
+            raise ConfigError(f"{key}={value}: a weight is a finite number or [start, end, "
+                              "ramp_steps] (linear from start to end over ramp_steps steps).")
+        self.value = tuple(float(v) for v in items) if ramp else float(value)
+        self.starts_at = float(starts_at)
+
+    def __call__(self, step: int, progress: float) -> float:
+        if progress < self.starts_at:
+            return 0.0
+        if isinstance(self.value, tuple):
+            start, end, steps = self.value
+            return float(start + (end - start) * min(step / max(steps, 1), 1.0))
+        return self.value
+
+    def __repr__(self) -> str:
+        value = list(self.value) if isinstance(self.value, tuple) else self.value
+        late = f", starts_at={self.starts_at}" if self.starts_at else ""
+        return f"WeightSchedule({value}{late})"
+
+
+class Objective:
+    """One objective of a stage: :attr:`name` (its key in ``losses.weights`` and its
+    metrics ``train/loss_<name>``, ``time/step_<name>_s``), a :class:`WeightSchedule` and
+    :meth:`loss`. Subclasses set ``name`` and implement :meth:`loss`."""
+
+    name: str = ""
+
+    def __init__(self, schedule: WeightSchedule):
+        self.schedule = schedule
+
+    def weight(self, step: int, progress: float) -> float:
+        """The weight at ``step`` and run progress ``progress`` in [0, 1]."""
+        return self.schedule(step, progress)
+
+    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+        """The unweighted loss on fresh samples and the ray ``batch``, over ``scenes``."""
+        raise NotImplementedError
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r}, {self.schedule!r})"
+
+
+def build_objectives(weights: Mapping[str, Any], units: Sequence[type[Objective]],
+                     starts_at: Mapping[str, float] | None = None, hint: str = ""
+                     ) -> dict[str, Objective]:
+    """The objectives ``weights`` (name -> weight or ramp) names among ``units``, in the
+    order of ``weights`` (the order the stage draws their samples in); ``starts_at`` holds
+    warm-ups by name. A name that is no unit's is refused, listing the names and
+    ``hint``."""
+    known = {unit.name: unit for unit in units}
+    unknown = sorted(set(weights) - set(known))
+    if unknown:
+        raise ConfigError(f"losses.weights has unknown objectives {unknown}; the objectives "
+                          f"are {list(known)}{hint}.")
+    starts_at = starts_at or {}
+    return {name: known[name](WeightSchedule(value, starts_at.get(name, 0.0),
+                                             f"losses.weights.{name}"))
+            for name, value in weights.items()}
+
+
+def member_mean(members: torch.Tensor,
+                loss_of: Callable[[int, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    """The mean over items of a loss computed member by member: ``sum_k (n_k / n)
+    loss_of(k, mask_k)``, with ``members`` (n,) each item's member and ``loss_of`` a mean
+    over the items of ``mask_k``."""
+    total = torch.zeros(())
+    for k in members.unique().tolist():
+        mask = members == k
+        total = total + mask.float().mean() * loss_of(k, mask)
+    return total
