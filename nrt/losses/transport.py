@@ -11,8 +11,8 @@ itself (:meth:`~nrt.modules.fields.sh_light_field.SHGridLightField.inscatter`). 
 side is evaluated without gradient, a fixed-point (source-iteration) step as neural
 radiosity does: each step carries light across the whole box and adds one scattering
 order, where a differential residual moves information one collocation spacing at a time.
-By default the medium gets no gradient here; it learns from the photos
-(``coupling`` in :mod:`~nrt.modules.stages.rte_split` can add this one).
+The medium gets no gradient here; it learns from the photos (and, with
+``model.coupling``, through :func:`unrolled_inscatter` or :mod:`~nrt.losses.adjoint`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from __future__ import annotations
 import torch
 
 from nrt.losses.objective import Objective, Scenes, member_mean
-from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.physics.compositing import alpha_composite, stratified_samples
 from nrt.physics.phase import sample_phase
@@ -46,22 +45,10 @@ def scattered_target(light: SHGridLightField, medium, points: torch.Tensor, dirs
 
 
 def transport_loss(light: SHGridLightField, medium, points: torch.Tensor, dirs: torch.Tensor,
-                   n_samples: int, to_medium: float = 0.0) -> torch.Tensor:
-    """Mean squared difference (units of ``radiance_scale``) of ``L_s`` and its target. The
-    light learns from it; with ``to_medium > 0`` the medium does too, through the target
-    with the light held fixed, its gradient scaled by ``to_medium`` (a penalty coupling).
-    That gradient takes the residual from a second, independent estimate of the target
-    (:func:`~nrt.losses.unbiased.unbiased_square`): the square of one estimate would also
-    pull the medium toward less Monte Carlo variance."""
-    target = scattered_target(light, medium, points, dirs, n_samples, to_medium > 0)
-    pred = light(points, dirs)
-    scale = light.radiance_scale
-    loss = torch.mean(((pred - target.detach()) / scale) ** 2)
-    if to_medium > 0:
-        other = scattered_target(light, medium, points, dirs, n_samples)
-        medium_part = unbiased_square((pred - other) / scale, (pred.detach() - target) / scale)
-        loss = loss + to_medium * (medium_part - medium_part.detach())
-    return loss
+                   n_samples: int) -> torch.Tensor:
+    """Mean squared difference (units of ``radiance_scale``) of ``L_s`` and its target."""
+    target = scattered_target(light, medium, points, dirs, n_samples)
+    return torch.mean(((light(points, dirs) - target) / light.radiance_scale) ** 2)
 
 
 def unrolled_inscatter(light: SHGridLightField, medium, x: torch.Tensor, w: torch.Tensor,

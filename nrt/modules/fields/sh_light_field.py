@@ -73,17 +73,11 @@ class SHGrid:
                 ).sum(-1)
 
     def inscatter(self, x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
-                  with_uncollided: bool = False, trainable: bool | float = True) -> torch.Tensor:
+                  with_uncollided: bool = False, trainable: bool = True) -> torch.Tensor:
         """``int f(w' . w) L(x, w') dw'`` (..., 3) of ``L_s`` (and of the cached uncollided
         light with ``with_uncollided``), exact for HG of ``g`` (...,) or isotropic (None).
-        ``trainable=False`` keeps gradients from the coefficients (not from ``g``); a number
-        scales the coefficients' gradient by it."""
-        c = self.coefficients
-        if not trainable:
-            grid = c.detach()
-        else:
-            scale = float(trainable)
-            grid = c if scale == 1.0 else c.detach() + scale * (c - c.detach())
+        ``trainable=False`` keeps gradients from the coefficients (not from ``g``)."""
+        grid = self.coefficients if trainable else self.coefficients.detach()
         if with_uncollided:
             grid = grid + self.uncollided
         basis = sh_basis(w, self.degree) * phase_band_factors(g, self.degree).to(w)
@@ -130,7 +124,7 @@ class SHGridLightField(nn.Module):
         return self.grid()(x, w)
 
     def inscatter(self, x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
-                  with_uncollided: bool = False, trainable: bool | float = True) -> torch.Tensor:
+                  with_uncollided: bool = False, trainable: bool = True) -> torch.Tensor:
         return self.grid().inscatter(x, w, g, with_uncollided, trainable)
 
     def set_uncollided(self, coefficients: torch.Tensor, blend: float = 1.0) -> None:

@@ -41,11 +41,14 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from nrt.errors import ConfigError
+from nrt.losses.adjoint import adjoint_loss, medium_sensitivity
 from nrt.losses.objective import Objective, build_objectives
 from nrt.losses.photo import PhotoObjective, check_tonemap, photo_loss
 from nrt.losses.transport import TransportObjective, transport_loss, unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
+from nrt.modules.fields.sh_light_field import SHGrid, SHGridLightField
 from nrt.modules.fields.voxel_medium import Voxels
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import render_view_rays, transmitted_background
@@ -113,8 +116,15 @@ class SplitRTEModule(RadiativeTransferStage):
                            effects=effects)
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
-        self.coupling = {"photo_to_light": 0.0, "transport_to_medium": 0.0,
-                         "unrolled_directions": 0, "unrolled_samples": 8, **(coupling or {})}
+        self.coupling = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
+                         "adjoint_blend": 0.5, **(coupling or {})}
+        if self.coupling["adjoint"] and self.learns_medium:
+            if not isinstance(self.light, SHGridLightField):
+                raise ConfigError("model.coupling.adjoint=true needs model/light_field=sh_grid "
+                                  "(the adjoint is solved on the same SH grid).")
+            self.adjoint = SHGridLightField(self.light.degree, self.light.resolution)
+            self.register_buffer("adjoint_source", torch.zeros_like(self.light.coefficients))
+        self._photo_coefficients: torch.Tensor | None = None
         self._ea_ckpt = density.get("ea_ckpt")
         self._baked = False
         self._uncollided_fresh = False
@@ -137,6 +147,8 @@ class SplitRTEModule(RadiativeTransferStage):
         """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
         lr = self.hparams.lr
         groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
+        if hasattr(self, "adjoint"):
+            groups.append({"params": list(self.adjoint.parameters()), "lr": lr["light"]})
         if self.learns_medium:
             groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"]})
         return groups
@@ -152,10 +164,11 @@ class SplitRTEModule(RadiativeTransferStage):
         learned medium, the ground truth itself in forward mode."""
         return self.medium.voxels() if self.learns_medium else self.medium
 
-    def inscatter(self, medium, light: ScatteredLightField):
+    def inscatter(self, medium, light: ScatteredLightField, coefficients_grad: bool = False):
         """In-scattering of all light for the camera rays' VRE: the sky's and the known
         lights' first scattering (with gradients to ``medium``) plus the scattered light's
-        (``light``) exact SH in-scattering (coefficients without gradient, ``g^l`` with)."""
+        (``light``) exact SH in-scattering (``g^l`` with gradient, the coefficients only with
+        ``coefficients_grad``)."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
 
@@ -166,8 +179,7 @@ class SplitRTEModule(RadiativeTransferStage):
             if self.lights is not None and len(self.lights):
                 total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
                                                  medium.bbox, int(s["shadow_steps"]), jitter=True)
-            total = total + light.inscatter(x, w, props.g,
-                                            trainable=float(self.coupling["photo_to_light"]))
+            total = total + light.inscatter(x, w, props.g, trainable=coefficients_grad)
             n_dirs = int(self.coupling.get("unrolled_directions", 0))
             if n_dirs > 0 and torch.is_grad_enabled():
                 total = total + unrolled_inscatter(
@@ -211,18 +223,22 @@ class SplitRTEModule(RadiativeTransferStage):
         bbox = light.bbox
         pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
         dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
-        photo_on = self.learns_medium and self.progress() >= self.hparams.light_warmup
-        to_medium = float(self.coupling["transport_to_medium"]) if photo_on else 0.0
-        medium = self.medium.voxels() if to_medium > 0 else detached(medium)
-        return transport_loss(light, medium, pts, dirs,
-                              int(self.hparams.samples["transport_samples"]), to_medium)
+        return transport_loss(light, detached(medium), pts, dirs,
+                              int(self.hparams.samples["transport_samples"]))
 
     def photo_objective(self, medium, light: ScatteredLightField, rays: dict) -> torch.Tensor:
         """The photo loss of the camera ``rays`` (``origins``, ``dirs``, ``background``,
-        ``rgb``) rendered through ``medium`` with ``light``'s in-scattering."""
+        ``rgb``) rendered through ``medium`` with ``light``'s in-scattering. With the adjoint
+        on, the coefficients are read through a leaf whose gradient is the adjoint's source
+        (:meth:`adjoint_step`)."""
+        source = self.inscatter(medium, light)
+        if light is self.light and hasattr(self, "adjoint"):
+            leaf = light.coefficients.detach().requires_grad_(True)
+            self._photo_coefficients = leaf
+            source = self.inscatter(medium, SHGrid(leaf, light.uncollided, light.degree,
+                                                   light.bbox, light.radiance_scale), True)
         pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
-                                int(self.hparams.samples["vre_samples"]),
-                                self.inscatter(medium, light))
+                                int(self.hparams.samples["vre_samples"]), source)
         return photo_loss(pred, rays["rgb"], light.radiance_scale, self.hparams.photo_tonemap)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
@@ -236,11 +252,41 @@ class SplitRTEModule(RadiativeTransferStage):
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
         total = self.backward_objectives(batch, [(medium, self.light)])
+        if self._photo_coefficients is not None and self._photo_coefficients.grad is not None:
+            self.adjoint_step(medium, self._photo_coefficients.grad)
+        self._photo_coefficients = None
         if self.learns_medium:
             self.log("train/medium_resolution", float(self.medium.resolution))
         opt.step()
         self.lr_schedulers().step()
         return torch.as_tensor(total)
+
+    def adjoint_step(self, medium, grad: torch.Tensor) -> None:
+        """Fold the photo loss's gradient to the coefficient grid (``grad``) into the adjoint
+        source, train the adjoint grid one step toward its equation, and backpropagate the
+        medium's sensitivity through the scattered light (:mod:`nrt.losses.adjoint`)."""
+        start = time.perf_counter()
+        light, bbox = self.light, self.light.bbox
+        cell_volume = torch.prod(bbox[1] - bbox[0]) / light.resolution ** 3
+        blend = float(self.coupling["adjoint_blend"])
+        self.adjoint_source.mul_(1 - blend).add_(blend * grad / cell_volume)
+        q_scale = self.adjoint_source.square().mean().sqrt().clamp_min(1e-30)
+        one = self.adjoint.radiance_scale
+        adjoint = SHGrid(self.adjoint.coefficients, self.adjoint.uncollided, light.degree,
+                         bbox, one)
+        source = SHGrid(self.adjoint_source / q_scale, self.adjoint.uncollided, light.degree,
+                        bbox, one)
+        n = int(self.hparams.samples["transport_points"])
+        pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
+        dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
+        loss = adjoint_loss(adjoint, source, detached(medium), pts, dirs,
+                            int(self.hparams.samples["transport_samples"]))
+        self.manual_backward(loss)
+        pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
+        self.manual_backward(medium_sensitivity(adjoint, light.grid(), self.medium.voxels(),
+                                                pts, float(q_scale)))
+        self.log("train/loss_adjoint", loss.detach())
+        self.log("time/step_adjoint_s", time.perf_counter() - start)
 
     # ------------------------------------------------------------- validation
     def predict_pixels(self, origins: torch.Tensor, dirs: torch.Tensor,
