@@ -19,6 +19,7 @@ from conftest import (
     run_train,
     train_command,
 )
+from finite_training import AssertFinite
 from omegaconf import OmegaConf
 
 from nrt.data.datamodule import RayDataModule
@@ -145,19 +146,6 @@ def test_a_failed_start_removes_only_what_it_wrote(tmp_path):
     assert (trained / "checkpoints" / "last.ckpt").is_file()
 
 
-class _AssertFinite(L.Callback):
-    """Fails on the first step whose parameters or gradients hold NaN or Inf."""
-
-    def on_before_optimizer_step(self, trainer, pl_module, optimizer):
-        for name, p in pl_module.named_parameters():
-            assert p.grad is None or torch.isfinite(p.grad).all(), f"grad of {name}"
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        assert torch.isfinite(outputs["loss"])
-        for name, p in pl_module.named_parameters():
-            assert torch.isfinite(p).all(), name
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("max_extinction,name", [(50.0, "dense"), (1e-4, "near_empty")])
 def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, name):
@@ -173,7 +161,7 @@ def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, nam
     trainer = L.Trainer(max_steps=200, accelerator="cpu", logger=False,
                         enable_checkpointing=False, enable_progress_bar=False,
                         num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
-                        callbacks=[_AssertFinite()])
+                        callbacks=[AssertFinite()])
     trainer.fit(model, datamodule=dm)
     assert trainer.global_step == 200
     assert torch.isfinite(model.density_grid(16)).all()

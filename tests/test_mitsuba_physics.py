@@ -37,7 +37,7 @@ from nrt.physics.envmap import (
     texel_directions,
     uv_to_direction,
 )
-from nrt.physics.phase import hg_phase, sample_hg, sample_hg_cos
+from nrt.physics.phase import hg_phase
 from nrt.physics.volume import optical_depth, ray_box_intersect, sample_grid, transmittance
 
 SEEDS = (1, 2)
@@ -557,76 +557,3 @@ def test_hg_is_normalised_and_forward_for_positive_g(g):
     f = 2 * math.pi * hg_phase(mu, g)
     assert float((w * f).sum()) == pytest.approx(1.0, abs=1e-7)
     assert float((w * f * mu).sum()) == pytest.approx(g, abs=1e-7)
-
-
-def _wilson_hilferty(dof: int, z: float) -> float:
-    """Upper ``z``-sigma quantile of chi-square(dof) (Wilson-Hilferty; accurate to ~1%)."""
-    c = 2 / (9 * dof)
-    return dof * (1 - c + z * math.sqrt(c)) ** 3
-
-
-@pytest.mark.parametrize("g", G_VALUES)
-def test_sample_hg_matches_hg_density(g):
-    """Histogram of cos(w, w') of 200k directions from :func:`sample_hg` (random w) in 40
-    equal bins against bin probabilities integrated from :func:`hg_phase` (Simpson, 2001
-    points per bin): Pearson chi-square with 39 dof must stay below its 5-sigma quantile
-    (~101; the mean is 39). Expected counts are >= 130 in every bin, so the chi-square
-    approximation holds. Samples are unit vectors, with no NaN. Measured chi2: 37.9, 39.0,
-    38.5, 36.4, 27.3 for g = -0.9, 0, 1e-4, 0.5, 0.9."""
-    n, bins = 200_000, 40
-    gen = torch.Generator().manual_seed(1234)
-    w = torch.randn(n, 3, generator=gen, dtype=torch.float64)
-    w = w / w.norm(dim=-1, keepdim=True)
-    xi = torch.rand(n, 2, generator=gen, dtype=torch.float64)
-    out = sample_hg(w, torch.full((n,), g, dtype=torch.float64), xi)
-    assert torch.isfinite(out).all()
-    torch.testing.assert_close(out.norm(dim=-1), torch.ones(n, dtype=torch.float64))
-    cos = (out * w).sum(-1).numpy()
-    counts, edges = np.histogram(cos, bins=bins, range=(-1, 1))
-    k = 2001
-    probs = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        mu = torch.linspace(lo, hi, k, dtype=torch.float64)
-        wts = torch.ones(k, dtype=torch.float64)
-        wts[1:-1:2], wts[2:-1:2] = 4, 2
-        probs.append(float((wts * 2 * math.pi * hg_phase(mu, g)).sum()) * (hi - lo) / (3 * (k - 1)))
-    expected = np.asarray(probs) * n
-    assert expected.min() > 100
-    chi2 = float(((counts - expected) ** 2 / expected).sum())
-    assert chi2 < _wilson_hilferty(bins - 1, 5.0), f"g={g}: chi2={chi2:.1f}"
-
-
-def test_sample_hg_gradients_at_and_near_zero():
-    """Reparameterisation gradients d cos / d g of the sampler are finite everywhere, equal
-    the HG inversion's derivative 3/2 (1 - a^2), a = 2 xi - 1, at g = 0 exactly, and the
-    sample moves continuously with g across the small-g branch switch (1e-2)."""
-    xi = torch.rand(1000, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
-    for g0 in (0.0, 1e-4, -1e-4, 1e-2, -1e-2, 0.3, -0.95, 0.95):
-        g = torch.tensor(g0, dtype=torch.float64, requires_grad=True)
-        (grad,) = torch.autograd.grad(sample_hg_cos(g, xi).sum(), g)
-        assert torch.isfinite(grad), g0
-        d = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(1000, 3)
-        xi2 = torch.stack((xi, xi.flip(0)), -1)
-        g2 = torch.tensor(g0, dtype=torch.float64, requires_grad=True)
-        (grad2,) = torch.autograd.grad(sample_hg(d, g2, xi2).sum(), g2)
-        assert torch.isfinite(grad2), g0
-        gp = torch.tensor(g0, dtype=torch.float64, requires_grad=True)
-        (gphase,) = torch.autograd.grad(hg_phase(2 * xi - 1, gp).sum(), gp)
-        assert torch.isfinite(gphase), g0
-    # per-sample derivative at g = 0 exactly (one g per sample, so the gradient of the sum
-    # is the vector of d cos_i / d g_i); the old isotropic fallback gave 0 and cos = -a
-    a = 2 * xi - 1
-    g = torch.zeros(1000, dtype=torch.float64, requires_grad=True)
-    cos = sample_hg_cos(g, xi)
-    (dcos,) = torch.autograd.grad(cos.sum(), g)
-    torch.testing.assert_close(dcos, 1.5 * (1 - a * a))
-    torch.testing.assert_close(cos.detach(), a)
-    # the derivative at g = 0 is the limit of the closed form's (finite differences at 0.02)
-    h = torch.tensor(0.02, dtype=torch.float64)
-    fd = (sample_hg_cos(h, xi) - sample_hg_cos(-h, xi)) / (2 * h)
-    torch.testing.assert_close(dcos, fd, rtol=0, atol=1e-3)
-    # continuity across the branch switch, in float64 and float32
-    for dtype, tol in ((torch.float64, 1e-6), (torch.float32, 3e-5)):
-        lo = sample_hg_cos(torch.tensor(1e-2 * (1 - 1e-6), dtype=dtype), xi.to(dtype))
-        hi = sample_hg_cos(torch.tensor(1e-2 * (1 + 1e-6), dtype=dtype), xi.to(dtype))
-        assert float((lo - hi).abs().max()) < tol, dtype

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import compose_config, last_value, only_run_dir, read_csv_metrics, run_train, values
+from finite_training import AssertFinite
 from omegaconf import OmegaConf
 
 from nrt.data.exr import write_exr
@@ -183,24 +184,11 @@ def build(tmp_path, *overrides: str, stage: str = "rte", paper: bool = True):
     return model, dm
 
 
-class _AssertFinite(L.Callback):
-    """Fails on the first step whose loss, gradients or parameters hold NaN or Inf."""
-
-    def on_before_optimizer_step(self, trainer, pl_module, optimizer):
-        for name, p in pl_module.named_parameters():
-            assert p.grad is None or torch.isfinite(p.grad).all(), f"grad of {name}"
-
-    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        assert torch.isfinite(outputs["loss"] if isinstance(outputs, dict) else outputs)
-        for name, p in pl_module.named_parameters():
-            assert torch.isfinite(p).all(), name
-
-
 def fit(model, dm, steps: int) -> L.Trainer:
     trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False,
                         enable_checkpointing=False, enable_progress_bar=False,
                         num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
-                        callbacks=[_AssertFinite()])
+                        callbacks=[AssertFinite()])
     trainer.fit(model, datamodule=dm)
     return trainer
 

@@ -400,7 +400,10 @@ def test_hg_cosines_follow_the_hg_density(g):
     1 within 1e-5 (normalisation of hg_phase) and match DESIGN.md's formula. Pearson's
     statistic must stay below the 0.999 quantile of chi-square(39): a correct sampler
     fails with probability 1e-3, a wrong lobe sign or a missing (1 - g^2) by thousands.
-    The sample mean cosine must be g (HG's defining moment) within 5 standard errors."""
+    The sample mean cosine must be g (HG's defining moment) within 5 standard errors.
+    ``sample_hg`` turns the same cosines into directions: for random unit travel directions
+    w its outputs are unit vectors whose cosine with w is ``sample_hg_cos``'s (float64
+    rounding, 1e-12), so the histogram covers the directions too."""
     torch.manual_seed(40)
     n, bins, sub = 200_000, 40, 4000
     xi = torch.rand(n, dtype=torch.float64)
@@ -420,6 +423,13 @@ def test_hg_cosines_follow_the_hg_density(g):
     assert stat < chi2.ppf(0.999, bins - 1), f"g={g}: chi2 = {stat:.1f}"
     mean_se = float(cos.std()) / math.sqrt(n)
     assert abs(float(cos.mean()) - g) < 5 * mean_se
+    w = torch.randn(n, 3, dtype=torch.float64)
+    w = w / w.norm(dim=-1, keepdim=True)
+    out = sample_hg(w, torch.full((n,), g, dtype=torch.float64),
+                    torch.stack((xi, torch.rand(n, dtype=torch.float64)), -1))
+    assert torch.isfinite(out).all()
+    torch.testing.assert_close(out.norm(dim=-1), torch.ones(n, dtype=torch.float64))
+    torch.testing.assert_close((out * w).sum(-1), cos, rtol=0, atol=1e-12)
 
 
 def test_hg_sampling_and_phase_have_finite_correct_gradients_at_zero_g():
@@ -428,7 +438,8 @@ def test_hg_sampling_and_phase_have_finite_correct_gradients_at_zero_g():
     the inversion), and d f / d g at g = 0 is 3 cos / (4 pi). Both are float64 rounding
     comparisons (rtol 1e-12). Directions from ``sample_hg``/``sample_phase`` and their
     gradients stay finite and unit length, including for travel directions on the poles
-    (the orthonormal-basis singularity at w_z = -1)."""
+    (the orthonormal-basis singularity at w_z = -1). Gradients of ``sample_hg`` and
+    ``hg_phase`` stay finite near 0, at the series switch and at +-G_MAX too."""
     torch.manual_seed(41)
     xi = torch.rand(5000, dtype=torch.float64)
     g = torch.tensor(0.0, dtype=torch.float64, requires_grad=True)
@@ -463,6 +474,12 @@ def test_hg_sampling_and_phase_have_finite_correct_gradients_at_zero_g():
         # at g = 0 the cosine with w is the uniform a = 2 xi - 1
         torch.testing.assert_close((out * w).sum(-1).detach(), 2 * xi2[:, 0] - 1,
                                    rtol=0, atol=1e-12)
+    for g0 in (1e-4, -1e-4, 1e-2, -1e-2, 0.3, -0.95, 0.95):
+        g_vec = torch.full((1000,), g0, dtype=torch.float64, requires_grad=True)
+        (gr,) = torch.autograd.grad(sample_hg(w, g_vec, xi2).sum(), g_vec)
+        gp = torch.tensor(g0, dtype=torch.float64, requires_grad=True)
+        (gphase,) = torch.autograd.grad(hg_phase(cos_grid, gp).sum(), gp)
+        assert torch.isfinite(gr).all() and torch.isfinite(gphase), g0
 
 
 def test_hg_sampler_is_continuous_across_its_series_branch():
@@ -477,6 +494,10 @@ def test_hg_sampler_is_continuous_across_its_series_branch():
         below = sample_hg_cos(torch.tensor(edge * (1 - 1e-12), dtype=torch.float64), xi)
         above = sample_hg_cos(torch.tensor(edge * (1 + 1e-12), dtype=torch.float64), xi)
         assert (below - above).abs().max() < 1e-6
+        below32 = sample_hg_cos(torch.tensor(edge * (1 - 1e-6)), xi.float())
+        above32 = sample_hg_cos(torch.tensor(edge * (1 + 1e-6)), xi.float())
+        # float32: the closed form divides roundings of ~6e-8 by 2 g = 0.02 (~3e-6 each)
+        assert (below32 - above32).abs().max() < 3e-5
     for g0 in (-0.5, -0.011, -0.009, 0.0, 0.005, 0.009, 0.011, 0.3, 0.9):
         g = torch.full_like(xi, g0, requires_grad=True)
         (grad,) = torch.autograd.grad(sample_hg_cos(g, xi).sum(), g)
