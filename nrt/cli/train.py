@@ -67,13 +67,10 @@ def resolve_ea_checkpoint(cfg: DictConfig, recorded: str | None = None) -> str |
     if OmegaConf.select(cfg, "model.density.source") != "ea":
         return None
     if cfg.init.ea_ckpt:
+        from nrt.modules.stages.ea import check_checkpoint_file
+
         path = Path(str(cfg.init.ea_ckpt)).expanduser()
-        if not path.is_file():
-            raise NrtError(f"init.ea_ckpt='{cfg.init.ea_ckpt}' is not a checkpoint file. Train "
-                           f"stage 1 first (nrt-train stage=ea scene={cfg.scene.name}) and pass "
-                           "its checkpoints/last.ckpt, or drop init.ea_ckpt to start from the "
-                           "newest EA run of the scene (stage 2 also runs without a first "
-                           "stage: init=none).")
+        check_checkpoint_file(str(path), f"nrt-train stage=ea scene={cfg.scene.name}")
     elif recorded and Path(recorded).is_file():
         path = Path(recorded)
     else:

@@ -30,9 +30,9 @@ from __future__ import annotations
 import torch
 
 from nrt.modules.fields.sh_light_field import SHGrid
-from nrt.physics.compositing import stratified_samples, transmittance_weights
+from nrt.physics.compositing import transmittance_weights
 from nrt.physics.sh import num_coefficients, phase_band_factors
-from nrt.physics.volume import ray_box_intersect, sample_grid
+from nrt.physics.volume import march_to_exit, sample_grid
 
 
 @torch.no_grad()
@@ -40,9 +40,7 @@ def adjoint_target(adjoint: SHGrid, source: SHGrid, medium, points: torch.Tensor
                    dirs: torch.Tensor, n_samples: int) -> torch.Tensor:
     """The right-hand side above (N, 3) at ``points`` for directions ``dirs`` (N, 3), with
     ``n_samples`` jittered strata; ``source`` holds ``Q`` as SH coefficients."""
-    _, t_exit, _ = ray_box_intersect(points, dirs, adjoint.bbox)
-    t, delta = stratified_samples(torch.zeros_like(t_exit), t_exit, n_samples, jitter=True)
-    x = points.unsqueeze(1) + t.unsqueeze(-1) * dirs.unsqueeze(1)
+    x, delta = march_to_exit(points, dirs, adjoint.bbox, n_samples, jitter=True)
     w = dirs.unsqueeze(1).expand_as(x)
     props = medium(x)
     t_before, tau = transmittance_weights(props.sigma_t, delta)

@@ -21,9 +21,9 @@ import torch
 
 from nrt.losses.objective import Objective, Scenes, member_mean
 from nrt.modules.fields.sh_light_field import SHGridLightField
-from nrt.physics.compositing import alpha_composite, stratified_samples
+from nrt.physics.compositing import alpha_composite
 from nrt.physics.phase import sample_phase
-from nrt.physics.volume import ray_box_intersect
+from nrt.physics.volume import march_to_exit
 
 
 def scattered_target(light: SHGridLightField, medium, points: torch.Tensor, dirs: torch.Tensor,
@@ -33,9 +33,7 @@ def scattered_target(light: SHGridLightField, medium, points: torch.Tensor, dirs
     Without gradient, or with gradient to the medium only (``medium_grad``)."""
     with torch.set_grad_enabled(medium_grad and torch.is_grad_enabled()):
         back = -dirs
-        _, t_exit, _ = ray_box_intersect(points, back, light.bbox)
-        t, delta = stratified_samples(torch.zeros_like(t_exit), t_exit, n_samples, jitter=True)
-        x = points.unsqueeze(1) + t.unsqueeze(-1) * back.unsqueeze(1)
+        x, delta = march_to_exit(points, back, light.bbox, n_samples, jitter=True)
         w = dirs.unsqueeze(1).expand_as(x)
         props = medium(x)
         source = props.albedo * light.inscatter(x, w, props.g, with_uncollided=True,

@@ -13,8 +13,10 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import torch
 
 from nrt.errors import NrtError
+from nrt.physics.phase import shared_g
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +48,7 @@ def mitsuba_properties(grids: dict, effects: dict) -> dict[str, np.ndarray]:
     if effects["phase"] == "varying_hg":
         out["g"] = g[..., None]
     elif effects["phase"] == "hg":
-        weight = sigma_s.mean(-1).astype(np.float64)
-        out["g"] = float((weight * g).sum() / weight.sum()) if weight.sum() > 0 else float(g.mean())
+        out["g"] = shared_g(torch.from_numpy(sigma_s), torch.from_numpy(g))
     return out
 
 

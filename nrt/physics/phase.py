@@ -21,6 +21,16 @@ _G_EPS = 1e-2
 closed form divides by ``g`` and loses digits to cancellation as ``g -> 0``)."""
 
 
+def shared_g(sigma_s: torch.Tensor, g: torch.Tensor) -> float:
+    """The one HG ``g`` standing for a grid of them: their mean weighted by the scattering
+    coefficient ``sigma_s`` (..., C) averaged over its channels (in float64), the plain mean of
+    ``g`` (...) where nothing scatters."""
+    weight = torch.as_tensor(sigma_s).double().mean(-1)
+    g = torch.as_tensor(g).double()
+    total = weight.sum()
+    return float((weight * g).sum() / total) if total > 0 else float(g.mean())
+
+
 def isotropic_phase(cos: torch.Tensor) -> torch.Tensor:
     """``1 / (4 pi)`` for every pair of directions, shaped like ``cos``."""
     return torch.full_like(cos, 1.0 / (4 * math.pi))

@@ -8,8 +8,12 @@ kept in log space (optical depth) and exponentiated once.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
+
+from nrt.physics.compositing import stratified_samples
 
 
 def ray_box_intersect(
@@ -31,12 +35,38 @@ def ray_box_intersect(
     return t_near, t_far, t_far > t_near
 
 
+def march(origins: torch.Tensor, dirs: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor,
+          n_samples: int, jitter: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points ``o + t d`` (N, n, 3) at ``n_samples`` strata of ``[t0, t1]`` (N,) along rays
+    ``origins``, ``dirs`` (N, 3) (:func:`~nrt.physics.compositing.stratified_samples`), and
+    the strata's lengths (N, n)."""
+    t, delta = stratified_samples(t0, t1, n_samples, jitter)
+    return origins.unsqueeze(1) + t.unsqueeze(-1) * dirs.unsqueeze(1), delta
+
+
+def march_to_exit(points: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor,
+                  n_samples: int, jitter: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`march` from ``points`` (N, 3) inside the box along ``dirs`` to where each ray
+    leaves ``bbox``."""
+    _, t_exit, _ = ray_box_intersect(points, dirs, bbox)
+    return march(points, dirs, torch.zeros_like(t_exit), t_exit, n_samples, jitter)
+
+
 def cell_centres(resolution: int, bbox: torch.Tensor) -> torch.Tensor:
     """World positions (R, R, R, 3) of the box's grid cell centres, indexed ``[z, y, x]``."""
     axes = [bbox[0, a] + (torch.arange(resolution, dtype=bbox.dtype, device=bbox.device) + 0.5)
             / resolution * (bbox[1, a] - bbox[0, a]) for a in range(3)]
     z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     return torch.stack((x, y, z), -1)
+
+
+def at_cell_centres(fn: Callable[[torch.Tensor], torch.Tensor], resolution: int,
+                    bbox: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+    """``fn(points (N, 3)) -> (N, ...)`` at the centres of ``resolution``^3 cells of ``bbox``
+    (:func:`cell_centres`), ``chunk`` points at a time: (R, R, R, ...), ``[z, y, x]``."""
+    pts = cell_centres(resolution, bbox).reshape(-1, 3)
+    out = torch.cat([fn(pts[i:i + chunk]) for i in range(0, len(pts), chunk)])
+    return out.reshape(resolution, resolution, resolution, *out.shape[1:])
 
 
 def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) -> torch.Tensor:

@@ -32,7 +32,7 @@ from torch import nn
 
 from nrt.errors import ConfigError
 from nrt.physics.phase import G_MAX
-from nrt.physics.volume import cell_centres, sample_grid
+from nrt.physics.volume import at_cell_centres, sample_grid
 
 PARAMETRIZATIONS = ("scattering", "extinction")
 """Chromatic media modulate ``(sigma_a, sigma_s)`` by exponents, or ``(sigma_t, albedo)`` by
@@ -97,14 +97,17 @@ def property_grids(medium, resolution: int, chunk: int = 65536) -> dict[str, tor
     dataset's ground truth: ``sigma_a``, ``sigma_s`` (R, R, R, 3) and ``g`` (R, R, R) (zero
     for an isotropic phase). ``medium(x) -> MediumProperties`` with ``bbox`` and ``phase``
     (a :class:`Medium`, or voxels composed from one)."""
-    pts = cell_centres(resolution, medium.bbox).reshape(-1, 3)
-    parts = [medium(pts[i:i + chunk]) for i in range(0, len(pts), chunk)]
-    shape = (resolution,) * 3
-    out = {k: torch.cat([getattr(p, k).expand(-1, 3) for p in parts]).reshape(*shape, 3)
-           for k in ("sigma_a", "sigma_s")}
-    out["g"] = (torch.cat([p.g for p in parts]).reshape(shape) if medium.phase != "none"
-                else torch.zeros(shape, device=pts.device))
-    return out
+    has_g = medium.phase != "none"
+
+    def packed(x: torch.Tensor) -> torch.Tensor:
+        p = medium(x)
+        columns = [p.sigma_a.expand(-1, 3), p.sigma_s.expand(-1, 3)]
+        return torch.cat(columns + [p.g.reshape(-1, 1)] if has_g else columns, -1)
+
+    v = at_cell_centres(packed, resolution, medium.bbox, chunk)
+    return {"sigma_a": v[..., :3].contiguous(), "sigma_s": v[..., 3:6].contiguous(),
+            "g": (v[..., 6].contiguous() if has_g
+                  else torch.zeros(v.shape[:3], device=v.device))}
 
 
 class NeuralMedium(Medium):

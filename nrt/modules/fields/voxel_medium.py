@@ -31,7 +31,7 @@ import torch
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
 from nrt.modules.fields.latent_grid import LatentGridDecoder
 from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
-from nrt.physics.volume import cell_centres, resample_cells, sample_grid
+from nrt.physics.volume import at_cell_centres, resample_cells, sample_grid
 
 
 class Voxels:
@@ -73,9 +73,7 @@ def bake(density: Callable[[torch.Tensor], torch.Tensor], resolution: int,
          bbox: torch.Tensor) -> torch.Tensor:
     """``density(points (N, 3)) -> (N,)`` at the centres of ``resolution``^3 cells of
     ``bbox``, clamped at 0: (R, R, R, 1), ``[z, y, x]``."""
-    pts = cell_centres(resolution, bbox).reshape(-1, 3)
-    values = torch.cat([density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
-    return values.reshape(resolution, resolution, resolution, 1).clamp_min(0.0)
+    return at_cell_centres(density, resolution, bbox).unsqueeze(-1).clamp_min(0.0)
 
 
 class VoxelMedium(NeuralMedium):

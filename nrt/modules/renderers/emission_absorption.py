@@ -8,8 +8,8 @@ from __future__ import annotations
 import torch
 
 from nrt.modules.fields.ea_field import EAField
-from nrt.physics.compositing import alpha_composite, stratified_samples
-from nrt.physics.volume import ray_box_intersect
+from nrt.modules.renderers.volume import march_view_rays
+from nrt.physics.compositing import alpha_composite
 
 
 def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
@@ -22,12 +22,10 @@ def render_rays(field: EAField, origins: torch.Tensor, dirs: torch.Tensor,
                                       background[i:i + chunk], n_samples, jitter,
                                       latent=None if latent is None else latent[i:i + chunk])
                           for i in range(0, origins.shape[0], chunk)])
-    t0, t1, hit = ray_box_intersect(origins, dirs, field.bbox)
+    hit, pts, delta = march_view_rays(field.bbox, origins, dirs, n_samples, jitter)
     out = background.clone()
-    if hit.any():
-        o, d = origins[hit], dirs[hit]
-        t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
-        pts = o.unsqueeze(1) + t.unsqueeze(-1) * d.unsqueeze(1)
+    if pts is not None:
+        d = dirs[hit]
         z = None if latent is None else latent[hit].unsqueeze(1)  # one code per ray
         sigma, rgb = field(pts, d.unsqueeze(1).expand_as(pts), z)
         out[hit], _ = alpha_composite(sigma, delta, rgb, background[hit])

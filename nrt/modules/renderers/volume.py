@@ -15,9 +15,9 @@ import torch
 
 from nrt.modules.fields.light_field import LightField
 from nrt.modules.fields.medium import Medium, MediumProperties
-from nrt.physics.compositing import alpha_composite, stratified_samples
+from nrt.physics.compositing import alpha_composite
 from nrt.physics.inscatter import inscattered_radiance
-from nrt.physics.volume import ray_box_intersect
+from nrt.physics.volume import march, ray_box_intersect
 
 DirectSource = Callable[[torch.Tensor, torch.Tensor, MediumProperties], torch.Tensor]
 """``(x, w, properties) -> S_direct`` (..., 3): first scattering of the known lights."""
@@ -36,8 +36,8 @@ def march_view_rays(bbox: torch.Tensor, origins: torch.Tensor, dirs: torch.Tenso
     t0, t1, hit = ray_box_intersect(origins, dirs, bbox)
     if not hit.any():
         return hit, None, None
-    t, delta = stratified_samples(t0[hit], t1[hit], n_samples, jitter)
-    return hit, origins[hit].unsqueeze(1) + t.unsqueeze(-1) * dirs[hit].unsqueeze(1), delta
+    x, delta = march(origins[hit], dirs[hit], t0[hit], t1[hit], n_samples, jitter)
+    return hit, x, delta
 
 
 def render_view_rays(medium, origins: torch.Tensor, dirs: torch.Tensor,

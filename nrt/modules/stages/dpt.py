@@ -49,9 +49,10 @@ from nrt.modules.fields.coarse_to_fine import (
     resample_parameter,
     resolution_at,
 )
+from nrt.modules.fields.voxel_medium import bake
 from nrt.modules.stages.stage import Stage, check_learning_rates
-from nrt.physics.phase import G_MAX
-from nrt.physics.volume import cell_centres, resample_cells
+from nrt.physics.phase import G_MAX, shared_g
+from nrt.physics.volume import resample_cells
 from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
@@ -114,8 +115,7 @@ class DPTModule(Stage):
             if self.hparams.phase_g is not None:
                 self._fixed_g = float(self.hparams.phase_g)
             elif gt is not None:
-                weight = gt["sigma_s"].double().mean(-1)
-                self._fixed_g = float((weight * gt["g"]).sum() / weight.sum().clamp_min(1e-30))
+                self._fixed_g = shared_g(gt["sigma_s"], gt["g"])
             log.info("dpt keeps the HG g fixed at %.4f (%s)", self._fixed_g,
                      "model.phase_g" if self.hparams.phase_g is not None else
                      "the ground truth's: an oracle" if gt is not None else "default")
@@ -144,10 +144,8 @@ class DPTModule(Stage):
         if "field" not in self._ea:
             self._ea["field"] = load_ea_field(self.hparams.density["ea_ckpt"])
         field = self._ea["field"]
-        pts = cell_centres(res, self.bbox.cpu()).reshape(-1, 3)
-        dens = torch.cat([field.density(pts[i:i + 65536]) for i in range(0, len(pts), 65536)])
-        return dens.reshape(res, res, res, 1).clamp(0, self.hparams.max_sigma_t).to(
-            self.sigma_t.device)
+        return bake(field.density, res, self.bbox.cpu()).clamp_max(
+            self.hparams.max_sigma_t).to(self.sigma_t.device)
 
     def configure_optimizers(self):
         opt = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)

@@ -15,12 +15,12 @@ import numpy as np
 import torch
 
 from nrt.errors import ConfigError, NrtError
-from nrt.metrics import density_agreement, psnr
+from nrt.metrics import density_agreement
 from nrt.modules.fields.ea_field import EAField
 from nrt.modules.renderers.emission_absorption import render_rays
 from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.tonemap import log_tonemap, luminance
-from nrt.physics.volume import cell_centres
+from nrt.physics.volume import at_cell_centres
 from nrt.tensorboard import log_image
 
 DENSITY_GRID_FILE = "density_grid.npz"
@@ -47,7 +47,6 @@ class EAModule(Stage):
         check_learning_rates(lr, "model.lr")
         self.photometric = PHOTOMETRIC_LOSSES[loss]
         self.field = EAField(**field)
-        self._baseline_psnr: dict[int, float] = {}
 
     def setup(self, stage: str) -> None:
         dm = self.datamodule()
@@ -83,10 +82,8 @@ class EAModule(Stage):
         pred = self.render(batch, jitter=False, chunk=self.hparams.eval_chunk)
         ref = batch["rgb"]
         member = batch.get("member")
-        key = (member, int(batch["view"]))
-        if key not in self._baseline_psnr:  # medium-free prediction: background only
-            self._baseline_psnr[key] = float(psnr(batch["background"], ref))
-        self.log("val/psnr_background_only", self._baseline_psnr[key], batch_size=1)
+        for key, value in self.view_baselines(batch).items():
+            self.log(f"val/{key}", value, batch_size=1)
         if batch_idx == 0:
             log_image(self, "val/render_vs_truth",
                       torch.cat((pred.reshape(h, w, 3), ref.reshape(h, w, 3)), 1))
@@ -100,11 +97,8 @@ class EAModule(Stage):
                      ) -> torch.Tensor:
         """Learned density (R, R, R) at the box's cell centres, indexed [z, y, x]; ``latent``
         (d_z,) is the code of a conditioned field."""
-        pts = cell_centres(resolution, self.field.bbox).reshape(-1, 3)
-        chunk = self.hparams.eval_chunk * 8
-        dens = torch.cat([self.field.density(pts[i:i + chunk], latent)
-                          for i in range(0, len(pts), chunk)])
-        return dens.reshape(resolution, resolution, resolution)
+        return at_cell_centres(lambda pts: self.field.density(pts, latent), resolution,
+                               self.field.bbox, self.hparams.eval_chunk * 8)
 
     def score_density(self, gt: dict[str, torch.Tensor], latent: torch.Tensor | None = None
                       ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
@@ -149,7 +143,8 @@ def check_checkpoint_file(ckpt_path: str | None, first_stage: str) -> None:
     trains the stage-1 run."""
     if not ckpt_path or not Path(ckpt_path).is_file():
         raise NrtError(f"init.ea_ckpt='{ckpt_path}' is not a checkpoint file. Train stage 1 "
-                       f"first ({first_stage}) or pass init.ea_ckpt=<path/to/last.ckpt> "
+                       f"first ({first_stage}) and pass its checkpoints/last.ckpt, or drop "
+                       "init.ea_ckpt to start from the newest EA run of the scene "
                        "(single-scene stage 2 also runs without a first stage: init=none).")
 
 

@@ -128,9 +128,8 @@ class GenerativeEAModule(EAModule):
         members = family.members if family is not None else []
         names = [m.name for m in members] or [f"member{k}" for k in range(len(self.codes))]
         seeds = [m.seed for m in members] or list(range(len(self.codes)))
-        truths = [gt for gt in self.member_ground_truths() if gt is not None]
-        fallback = int(truths[0]["g"].shape[0]) if truths else 64
-        res = int(self.hparams.density_resolution or fallback)
+        res = self.grid_resolution(self.hparams.density_resolution, 64,
+                                   self.member_ground_truths())
         exports = {f"density_grid_{name}": self.write_density_grid(
             run_dir / MEMBERS_DIR / name / DENSITY_GRID_FILE, res, self.codes[k])
             for k, name in enumerate(names)}

@@ -52,7 +52,7 @@ from nrt.modules.stages.components import as_factory, factory_config
 from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
 from nrt.modules.stages.rte_split import SplitRTEModule, detached
 from nrt.modules.stages.stage import check_learning_rates
-from nrt.physics.volume import cell_centres
+from nrt.physics.volume import at_cell_centres
 
 log = logging.getLogger(__name__)
 
@@ -142,10 +142,9 @@ class GenerativeRTEModule(SplitRTEModule):
         """The frozen EA field's hash features (R^3, F) at the centres of the medium's
         ``density_resolution``^3 cells, ``[z, y, x]``; computed once."""
         if self._encoding is None:
-            pts = cell_centres(self.medium.density_resolution, self.medium.bbox).reshape(-1, 3)
             with torch.no_grad():
-                self._encoding = torch.cat([self.ea.encode(pts[i:i + 65536])
-                                            for i in range(0, len(pts), 65536)])
+                self._encoding = at_cell_centres(self.ea.encode, self.medium.density_resolution,
+                                                 self.medium.bbox).flatten(0, 2)
         return self._encoding
 
     def density_for(self, code: torch.Tensor) -> torch.Tensor:
@@ -232,9 +231,8 @@ class GenerativeRTEModule(SplitRTEModule):
         ``property_resolution``, default its ground truth's, else 64) and ``latents.npz``
         (``codes``, ``names``, ``seeds``) into ``run_dir``."""
         run_dir = Path(run_dir)
-        truths = [gt for gt in self.member_ground_truths() if gt is not None]
-        fallback = int(truths[0]["g"].shape[0]) if truths else 64
-        res = int(self.hparams.property_resolution or fallback)
+        res = self.grid_resolution(self.hparams.property_resolution, 64,
+                                   self.member_ground_truths())
         exports = {}
         for k, name in enumerate(self.member_names()):
             path = run_dir / MEMBERS_DIR / name / MEDIUM_GRIDS_FILE

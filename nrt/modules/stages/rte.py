@@ -90,7 +90,6 @@ class RadiativeTransferStage(Stage):
         self.lights: DirectLights | None = None
         self.env_sampler: EnvironmentDirectionSampler | None = None  # directions like env_rest
         self.objectives: dict[str, Objective] = {}  # by name, in the order of losses.weights
-        self._baselines: dict[tuple[int | None, int], dict[str, float]] = {}
 
     def active_weights(self) -> dict[str, float]:
         """The objectives whose weight is positive at this step, with their weights."""
@@ -189,7 +188,7 @@ class RadiativeTransferStage(Stage):
         self.log("val/psnr_exit", psnr(pred["exit"], ref), batch_size=1)
         scale = self.light.radiance_scale
         self.log("val/image_mse", torch.mean(((pred["vre"] - ref) / scale) ** 2), batch_size=1)
-        for key, value in self._view_baselines(batch).items():
+        for key, value in self.view_baselines(batch).items():
             self.log(f"val/{key}", value, batch_size=1)
         if batch_idx == 0:
             log_image(self, "val/vre|exit|truth", torch.cat(
@@ -199,24 +198,19 @@ class RadiativeTransferStage(Stage):
             out["member"] = int(batch["member"])
         return out
 
-    def _view_baselines(self, batch: dict) -> dict[str, float]:
-        """PSNR of medium-free (background only) and no-scattering predictions (the true
-        medium's transmitted background ``T E(v)``, when ground truth exists); cached per
-        (member, view)."""
-        view = (batch.get("member"), int(batch["view"]))
-        if view not in self._baselines:
-            ref, bg = batch["rgb"], batch["background"]
-            out = {"psnr_background_only": float(psnr(bg, ref))}
-            gt = self.ground_truth()
-            if gt is not None:
-                true = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
-                                         self.medium.bbox.cpu()).to(self.device)
-                with torch.no_grad():
-                    t_e = transmitted_background(true, batch["origins"], batch["dirs"], bg,
-                                                 int(self.hparams.samples["vre_samples"]))
-                out["psnr_transmitted_only"] = float(psnr(t_e, ref))
-            self._baselines[view] = out
-        return self._baselines[view]
+    def more_baselines(self, batch: dict) -> dict[str, float]:
+        """The no-scattering prediction's PSNR: the true medium's transmitted background
+        ``T E(v)``, when ground truth exists."""
+        gt = self.ground_truth()
+        if gt is None:
+            return {}
+        true = GroundTruthMedium(self.effects, gt["sigma_a"], gt["sigma_s"], gt["g"],
+                                 self.medium.bbox.cpu()).to(self.device)
+        with torch.no_grad():
+            t_e = transmitted_background(true, batch["origins"], batch["dirs"],
+                                         batch["background"],
+                                         int(self.hparams.samples["vre_samples"]))
+        return {"psnr_transmitted_only": float(psnr(t_e, batch["rgb"]))}
 
     def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
         """The learned medium on R^3 cells (ground-truth layout); None in forward mode."""

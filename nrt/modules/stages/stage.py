@@ -30,12 +30,14 @@ that nrt-train refuses mistakes before it loads any data.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import lightning as L
 import torch
 
 from nrt.errors import ConfigError
+from nrt.metrics import psnr
 from nrt.modules.stages.schedules import training_progress
 
 
@@ -65,6 +67,7 @@ class Stage(L.LightningModule):
     def __init__(self, effects: dict | None = None):
         super().__init__()
         self.effects = effects if effects is not None else {}
+        self._baselines: dict[tuple[int | None, int], dict[str, float]] = {}
 
     # ------------------------------------------------------------ what stages offer
     def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
@@ -94,6 +97,22 @@ class Stage(L.LightningModule):
         return {}
 
     # ------------------------------------------------------------------ helpers
+    def view_baselines(self, batch: dict) -> dict[str, float]:
+        """PSNRs (dB) of predictions a learned medium should beat, for one held-out view
+        (``rgb``, ``background``, ``view``, optional ``member``), computed once per (member,
+        view): ``psnr_background_only`` (no medium: the background alone) and what
+        :meth:`more_baselines` adds. Validation logs each as ``val/<name>``."""
+        view = (batch.get("member"), int(batch["view"]))
+        if view not in self._baselines:
+            self._baselines[view] = {
+                "psnr_background_only": float(psnr(batch["background"], batch["rgb"])),
+                **self.more_baselines(batch)}
+        return self._baselines[view]
+
+    def more_baselines(self, batch: dict) -> dict[str, float]:
+        """Further baselines of :meth:`view_baselines` (name -> PSNR in dB); none here."""
+        return {}
+
     def datamodule(self):
         """The attached trainer's datamodule; None outside a trainer."""
         return self.trainer.datamodule if self._trainer is not None else None
@@ -108,10 +127,13 @@ class Stage(L.LightningModule):
         0 outside a trainer."""
         return training_progress(self.trainer) if self._trainer is not None else 0.0
 
-    def grid_resolution(self, requested: int | None, fallback: int) -> int:
-        """Cells per axis of exported or scored grids: ``requested``, else the ground
-        truth's, else ``fallback``."""
+    def grid_resolution(self, requested: int | None, fallback: int,
+                        truths: Sequence[dict[str, torch.Tensor] | None] | None = None) -> int:
+        """Cells per axis of exported or scored grids: ``requested``, else that of the first
+        of ``truths`` (default: the dataset's ground truth; a family passes its members')
+        that exists, else ``fallback``."""
         if requested is not None:
             return int(requested)
-        gt = self.ground_truth()
+        truths = [self.ground_truth()] if truths is None else truths
+        gt = next((t for t in truths if t is not None), None)
         return int(gt["g"].shape[0]) if gt is not None else int(fallback)
