@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 
 from nrt.modules.fields.sh_light_field import SHGrid
-from nrt.physics.compositing import stratified_samples, transmittance_weights
+from nrt.physics.compositing import optical_depths, stratified_samples
 from nrt.physics.sh import num_coefficients, phase_band_factors
 from nrt.physics.volume import ray_box_intersect, sample_grid
 
@@ -45,7 +45,8 @@ def adjoint_target(adjoint: SHGrid, source: SHGrid, medium, points: torch.Tensor
     x = points.unsqueeze(1) + t.unsqueeze(-1) * dirs.unsqueeze(1)
     w = dirs.unsqueeze(1).expand_as(x)
     props = medium(x)
-    t_before, tau = transmittance_weights(props.sigma_t, delta)
+    tau, cum = optical_depths(props.sigma_t, delta)
+    t_before = torch.exp(-(cum - tau))
     alpha = -torch.expm1(-tau)
     # int over a stratum of T Q dt = T_before Q (1 - exp(-tau)) / sigma_t = T_before Q d h(tau)
     h = torch.where(tau > 1e-6, alpha / tau.clamp_min(1e-6), 1 - tau / 2)
