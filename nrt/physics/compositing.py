@@ -28,15 +28,14 @@ def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int, jitter
     return t, step.expand_as(t)
 
 
-def transmittance_weights(sigma: torch.Tensor, deltas: torch.Tensor
-                          ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Transmittance up to each sample ``T_i`` and its segment's optical depth
-    ``tau_i = sigma_i d_i``, for ``sigma`` (R, S) or per channel (R, S, C) over ``deltas``
-    (R, S); both shaped like ``sigma``."""
+def optical_depths(sigma: torch.Tensor, deltas: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each segment's optical depth ``tau_i = sigma_i d_i`` and their running sum, for
+    ``sigma`` (R, S) or per channel (R, S, C) over ``deltas`` (R, S); shaped like ``sigma``.
+    ``exp(-(cum - tau))`` is the transmittance up to each sample."""
     per_channel = sigma.dim() == deltas.dim() + 1
     tau = sigma.clamp_min(0.0) * (deltas.unsqueeze(-1) if per_channel else deltas)
-    cum = torch.cumsum(tau, -2 if per_channel else -1)
-    return torch.exp(-(cum - tau)), tau  # exclusive prefix sum
+    return tau, torch.cumsum(tau, -2 if per_channel else -1)
 
 
 def alpha_composite(sigma: torch.Tensor, deltas: torch.Tensor, values: torch.Tensor,
@@ -50,9 +49,10 @@ def alpha_composite(sigma: torch.Tensor, deltas: torch.Tensor, values: torch.Ten
     """
     per_channel = sigma.dim() == values.dim()
     axis = -2 if per_channel else -1
-    t_before, tau = transmittance_weights(sigma, deltas)
+    tau, cum = optical_depths(sigma, deltas)
+    t_before = torch.exp(-(cum - tau))  # exclusive prefix sum: transmittance up to sample i
     weights = t_before * -torch.expm1(-tau)
-    t_final = t_before.select(axis, -1) * torch.exp(-tau.select(axis, -1))
+    t_final = torch.exp(-cum.select(axis, -1))
     if not per_channel:
         weights, t_final_c = weights.unsqueeze(-1), t_final.unsqueeze(-1)
     else:
