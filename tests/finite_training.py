@@ -1,4 +1,4 @@
-"""A Lightning callback for tests that train: no NaN or Inf may appear."""
+"""Training in tests: a callback that fails on NaN or Inf, and a short CPU fit under it."""
 
 from __future__ import annotations
 
@@ -17,3 +17,14 @@ class AssertFinite(L.Callback):
         assert torch.isfinite(outputs["loss"] if isinstance(outputs, dict) else outputs)
         for name, p in pl_module.named_parameters():
             assert torch.isfinite(p).all(), name
+
+
+def fit(model: L.LightningModule, dm: L.LightningDataModule, steps: int) -> L.Trainer:
+    """``steps`` training steps on the CPU without logging, checkpoints or validation,
+    under :class:`AssertFinite`."""
+    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
+                        callbacks=[AssertFinite()])
+    trainer.fit(model, datamodule=dm)
+    return trainer

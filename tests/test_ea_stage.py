@@ -7,7 +7,6 @@ import subprocess
 import time
 from pathlib import Path
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -19,7 +18,7 @@ from conftest import (
     run_train,
     train_command,
 )
-from finite_training import AssertFinite
+from finite_training import fit
 from omegaconf import OmegaConf
 
 from nrt.data.datamodule import RayDataModule
@@ -158,12 +157,7 @@ def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, nam
     model_cfg["field"]["hash_grid"] = {"levels": 8, "log2_table_size": 15}
     model = EAModule(field=model_cfg["field"], samples_per_ray=32)
     dm = RayDataModule(str(folder), batch_size=512, steps_per_epoch=200, val_views=1)
-    trainer = L.Trainer(max_steps=200, accelerator="cpu", logger=False,
-                        enable_checkpointing=False, enable_progress_bar=False,
-                        num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
-                        callbacks=[AssertFinite()])
-    trainer.fit(model, datamodule=dm)
-    assert trainer.global_step == 200
+    assert fit(model, dm, 200).global_step == 200
     assert torch.isfinite(model.density_grid(16)).all()
 
 

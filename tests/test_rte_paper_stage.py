@@ -7,12 +7,11 @@ stage 2 (split) has its own tests in ``test_rte_split_stage.py``."""
 import re
 
 import hydra
-import lightning as L
 import numpy as np
 import pytest
 import torch
 from conftest import compose_config, last_value, only_run_dir, read_csv_metrics, run_train, values
-from finite_training import AssertFinite
+from finite_training import fit
 from omegaconf import OmegaConf
 
 from nrt.data.exr import write_exr
@@ -182,15 +181,6 @@ def build(tmp_path, *overrides: str, stage: str = "rte", paper: bool = True):
     dm = hydra.utils.instantiate(cfg.data, dataset_dir=str(folder))
     model = hydra.utils.instantiate(cfg.model, _convert_="all")
     return model, dm
-
-
-def fit(model, dm, steps: int) -> L.Trainer:
-    trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False,
-                        enable_checkpointing=False, enable_progress_bar=False,
-                        num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
-                        callbacks=[AssertFinite()])
-    trainer.fit(model, datamodule=dm)
-    return trainer
 
 
 def bright_sun_sky(path) -> str:
