@@ -23,7 +23,9 @@ Optional, with these defaults:
 - :meth:`Stage.export`: files written into the run folder after training; none.
 
 Shared helpers: :meth:`Stage.ground_truth`, :meth:`Stage.progress` (of the run's steps or
-time budget, for schedules) and :meth:`Stage.grid_resolution`. A stage checks its config
+time budget, for schedules), :meth:`Stage.grid_resolution` and :meth:`Stage.view_baselines`
+(the PSNRs a held-out view's validation logs beside the stage's own, extended through
+:meth:`Stage.more_baselines`). A stage checks its config
 when it is built (:class:`~nrt.errors.ConfigError`, e.g. :func:`check_learning_rates`), so
 that nrt-train refuses mistakes before it loads any data.
 """
