@@ -190,3 +190,16 @@ def test_a_run_folder_from_before_the_layout_names_todays_stage(tmp_path: Path):
                    tmp_path / ".hydra" / "config.yaml")
     run = open_run(tmp_path)
     assert hydra.utils.get_class(run.model_target) is SplitRTEModule
+
+
+def test_the_ea_field_is_a_density_field_with_an_optional_code():
+    """Stage 2 reads stage 1 through :class:`DensityField`: the EA field has its members,
+    and ``density(x)`` without a code equals ``density(x, None)`` for a single scene."""
+    from nrt.modules.fields.ea_field import EAField
+    from nrt.modules.fields.protocols import DensityField, members
+
+    field = EAField(hash_grid={"levels": 2, "log2_table_size": 8})
+    assert all(hasattr(field, name) for name in members(DensityField))
+    x = torch.rand(5, 3) * 2 - 1
+    torch.testing.assert_close(field.density(x), field.density(x, None))
+    assert field.density(x).shape == (5,)

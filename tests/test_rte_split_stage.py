@@ -160,3 +160,17 @@ def test_medium_waits_for_the_light_field_and_grows_coarse_to_fine(tmp_path, mon
     assert photo_steps and min(photo_steps) == 5
     assert {s for s, name in called if name == "transport"} == set(range(10))
     assert isinstance(model.medium, VoxelMedium) and model.medium.resolution == 4
+
+
+def test_coupling_options_carry_photo_gradients_through_the_scattered_light(tmp_path):
+    """``model.coupling``: with the adjoint on, the photo loss's gradient to the coefficient
+    grid becomes the adjoint's source and the adjoint grid learns from it (both nonzero
+    after the photos start); the unrolled step and the adjoint together train 10 steps
+    with finite values everywhere, and the adjoint's state is part of the checkpoint."""
+    model, dm = build(tmp_path, "model.coupling.adjoint=true",
+                      "model.coupling.unrolled_directions=1", "budget.rte.light_warmup=0.2")
+    assert model.adjoint is not None and "adjoint_source" in model.state_dict()
+    trains_finite(model, dm, 10)
+    assert model.adjoint_source.abs().max() > 0
+    assert model.adjoint.coefficients.detach().abs().max() > 0
+    assert "adjoint.coefficients" in model.state_dict()

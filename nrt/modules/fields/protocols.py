@@ -20,6 +20,18 @@ import torch
 from nrt.errors import ConfigError
 
 
+class DensityField(Protocol):
+    """Stage 1's density, which stage 2 bakes and modulates (by default
+    :class:`~nrt.modules.fields.ea_field.EAField`)."""
+
+    bbox: torch.Tensor
+
+    def density(self, x: torch.Tensor, latent: torch.Tensor | None = None) -> torch.Tensor:
+        """Density per unit length (...,) at world points ``x`` (..., 3). ``latent`` (..., d_z)
+        is the scene's code in generative mode (required exactly when the field is
+        conditioned on one), None for a single scene."""
+
+
 class ScatteredLightField(Protocol):
     """The light field of the split stage (``stage=rte``): the light scattered at least once,
     ``L_s(x, w)``, and the SH in-scattering of it and of the uncollided light. Built as
@@ -121,7 +133,7 @@ class ModulatedMedium(Protocol):
     Built as ``factory(effects, density_field)`` (``density_field`` None with ``init=none``)."""
 
     bbox: torch.Tensor
-    density_field: torch.nn.Module | None
+    density_field: DensityField | None
 
     def __call__(self, x: torch.Tensor):
         """:class:`~nrt.modules.fields.medium.MediumProperties` at points (..., 3)."""

@@ -118,6 +118,7 @@ class SplitRTEModule(RadiativeTransferStage):
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
         self.coupling = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
                          "adjoint_blend": 0.5, **(coupling or {})}
+        self.adjoint: SHGridLightField | None = None  # the adjoint grid, with coupling.adjoint
         if self.coupling["adjoint"] and self.learns_medium:
             if not isinstance(self.light, SHGridLightField):
                 raise ConfigError("model.coupling.adjoint=true needs model/light_field=sh_grid "
@@ -147,7 +148,7 @@ class SplitRTEModule(RadiativeTransferStage):
         """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
         lr = self.hparams.lr
         groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
-        if hasattr(self, "adjoint"):
+        if self.adjoint is not None:
             groups.append({"params": list(self.adjoint.parameters()), "lr": lr["light"]})
         if self.learns_medium:
             groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"]})
@@ -232,7 +233,7 @@ class SplitRTEModule(RadiativeTransferStage):
         on, the coefficients are read through a leaf whose gradient is the adjoint's source
         (:meth:`adjoint_step`)."""
         source = self.inscatter(medium, light)
-        if light is self.light and hasattr(self, "adjoint"):
+        if light is self.light and self.adjoint is not None:
             leaf = light.coefficients.detach().requires_grad_(True)
             self._photo_coefficients = leaf
             source = self.inscatter(medium, SHGrid(leaf, light.uncollided, light.degree,
