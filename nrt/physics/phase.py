@@ -23,9 +23,10 @@ closed form divides by ``g`` and loses digits to cancellation as ``g -> 0``)."""
 
 def shared_g(sigma_s: torch.Tensor, g: torch.Tensor) -> float:
     """The one HG ``g`` standing for a grid of them: their mean weighted by the scattering
-    coefficient ``sigma_s`` (..., C) averaged over its channels (in float64), the plain mean of
-    ``g`` (...) where nothing scatters."""
-    weight = torch.as_tensor(sigma_s).double().mean(-1)
+    coefficient ``sigma_s`` (..., C) averaged over its channels (in its own precision, then
+    summed in float64, as the datasets' Mitsuba scenes have always been built), the plain
+    mean of ``g`` (...) where nothing scatters."""
+    weight = torch.as_tensor(sigma_s).mean(-1).double()
     g = torch.as_tensor(g).double()
     total = weight.sum()
     return float((weight * g).sum() / total) if total > 0 else float(g.mean())
