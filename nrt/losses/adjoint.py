@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 
 from nrt.modules.fields.sh_light_field import SHGrid
-from nrt.physics.compositing import optical_depths
+from nrt.physics.compositing import segment_transmittance
 from nrt.physics.sh import num_coefficients, phase_band_factors
 from nrt.physics.volume import march_to_exit, sample_grid
 
@@ -43,8 +43,7 @@ def adjoint_target(adjoint: SHGrid, source: SHGrid, medium, points: torch.Tensor
     x, delta = march_to_exit(points, dirs, adjoint.bbox, n_samples, jitter=True)
     w = dirs.unsqueeze(1).expand_as(x)
     props = medium(x)
-    tau, cum = optical_depths(props.sigma_t, delta)
-    t_before = torch.exp(-(cum - tau))
+    t_before, tau, _ = segment_transmittance(props.sigma_t, delta)
     alpha = -torch.expm1(-tau)
     # int over a stratum of T Q dt = T_before Q (1 - exp(-tau)) / sigma_t = T_before Q d h(tau)
     h = torch.where(tau > 1e-6, alpha / tau.clamp_min(1e-6), 1 - tau / 2)

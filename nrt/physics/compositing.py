@@ -28,14 +28,15 @@ def stratified_samples(t_near: torch.Tensor, t_far: torch.Tensor, n: int, jitter
     return t, step.expand_as(t)
 
 
-def optical_depths(sigma: torch.Tensor, deltas: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each segment's optical depth ``tau_i = sigma_i d_i`` and their running sum, for
-    ``sigma`` (R, S) or per channel (R, S, C) over ``deltas`` (R, S); shaped like ``sigma``.
-    ``exp(-(cum - tau))`` is the transmittance up to each sample."""
+def segment_transmittance(sigma: torch.Tensor, deltas: torch.Tensor
+                          ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """For ``sigma`` (R, S) or per channel (R, S, C) over segment lengths ``deltas`` (R, S):
+    the transmittance up to each sample ``T_i``, each segment's optical depth
+    ``tau_i = sigma_i d_i`` and their running sum, all shaped like ``sigma``."""
     per_channel = sigma.dim() == deltas.dim() + 1
     tau = sigma.clamp_min(0.0) * (deltas.unsqueeze(-1) if per_channel else deltas)
-    return tau, torch.cumsum(tau, -2 if per_channel else -1)
+    cum = torch.cumsum(tau, -2 if per_channel else -1)
+    return torch.exp(-(cum - tau)), tau, cum  # exclusive prefix sum
 
 
 def alpha_composite(sigma: torch.Tensor, deltas: torch.Tensor, values: torch.Tensor,
@@ -49,8 +50,7 @@ def alpha_composite(sigma: torch.Tensor, deltas: torch.Tensor, values: torch.Ten
     """
     per_channel = sigma.dim() == values.dim()
     axis = -2 if per_channel else -1
-    tau, cum = optical_depths(sigma, deltas)
-    t_before = torch.exp(-(cum - tau))  # exclusive prefix sum: transmittance up to sample i
+    t_before, tau, cum = segment_transmittance(sigma, deltas)
     weights = t_before * -torch.expm1(-tau)
     t_final = torch.exp(-cum.select(axis, -1))
     if not per_channel:
