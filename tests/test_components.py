@@ -203,3 +203,10 @@ def test_the_ea_field_is_a_density_field_with_an_optional_code():
     x = torch.rand(5, 3) * 2 - 1
     torch.testing.assert_close(field.density(x), field.density(x, None))
     assert field.density(x).shape == (5,)
+
+
+def test_an_unknown_coupling_key_is_refused_with_the_known_ones():
+    """A misspelt ``model.coupling`` key (added with ``+``, so Hydra lets it through) would
+    otherwise be ignored silently: the stage refuses it and names the keys it knows."""
+    with pytest.raises(ConfigError, match=r"unknown keys \['adjiont'\].*'adjoint'"):
+        build("stage=rte", "+model.coupling.adjiont=true")

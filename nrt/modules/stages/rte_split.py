@@ -70,6 +70,12 @@ FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_g
         "paper's formulation (experiment=rte_paper)")
 
 
+COUPLING = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
+            "adjoint_blend": 0.5}
+"""``model.coupling``'s keys and defaults: the photos' gradient through the scattered light
+(off by default; docs/stage2.md, "Coupling")."""
+
+
 def extinction(medium):
     """``x -> sigma_t`` of a medium: one lookup for voxels, the properties otherwise."""
     return medium.sigma_t if isinstance(medium, Voxels) else (lambda x: medium(x).sigma_t)
@@ -116,8 +122,11 @@ class SplitRTEModule(RadiativeTransferStage):
                            effects=effects)
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
-        self.coupling = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
-                         "adjoint_blend": 0.5, **(coupling or {})}
+        unknown = set(coupling or {}) - set(COUPLING)
+        if unknown:
+            raise ConfigError(f"model.coupling has unknown keys {sorted(unknown)}; the keys are "
+                              f"{list(COUPLING)} (conf/model/rte.yaml).")
+        self.coupling = {**COUPLING, **(coupling or {})}
         self.adjoint: SHGridLightField | None = None  # the adjoint grid, with coupling.adjoint
         if self.coupling["adjoint"] and self.learns_medium:
             if not isinstance(self.light, SHGridLightField):
@@ -181,11 +190,11 @@ class SplitRTEModule(RadiativeTransferStage):
                 total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
                                                  medium.bbox, int(s["shadow_steps"]), jitter=True)
             total = total + light.inscatter(x, w, props.g, trainable=coefficients_grad)
-            n_dirs = int(self.coupling.get("unrolled_directions", 0))
+            n_dirs = int(self.coupling["unrolled_directions"])
             if n_dirs > 0 and torch.is_grad_enabled():
                 total = total + unrolled_inscatter(
                     light, medium, x, w, props.g, n_dirs,
-                    int(self.coupling.get("unrolled_samples", 8)))
+                    int(self.coupling["unrolled_samples"]))
             return total
         return source
 
@@ -232,12 +241,13 @@ class SplitRTEModule(RadiativeTransferStage):
         ``rgb``) rendered through ``medium`` with ``light``'s in-scattering. With the adjoint
         on, the coefficients are read through a leaf whose gradient is the adjoint's source
         (:meth:`adjoint_step`)."""
-        source = self.inscatter(medium, light)
         if light is self.light and self.adjoint is not None:
             leaf = light.coefficients.detach().requires_grad_(True)
             self._photo_coefficients = leaf
             source = self.inscatter(medium, SHGrid(leaf, light.uncollided, light.degree,
                                                    light.bbox, light.radiance_scale), True)
+        else:
+            source = self.inscatter(medium, light)
         pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
                                 int(self.hparams.samples["vre_samples"]), source)
         return photo_loss(pred, rays["rgb"], light.radiance_scale, self.hparams.photo_tonemap)
