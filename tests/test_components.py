@@ -1,8 +1,9 @@
-"""Stage 2's light field and medium are components chosen by config group
-(``model/light_field=<name>``, ``model/medium=<name>``; :mod:`nrt.modules.stages.components`):
-every such config builds with the formulation it belongs to and is refused with a
-``ConfigError`` naming its group by the other; the default compositions build the very
-modules they built before the groups existed; checkpoints written before load."""
+"""Stage 1's density field and stage 2's light field and medium are components chosen by
+config group (``model/density_field=<name>``, ``model/light_field=<name>``,
+``model/medium=<name>``; :mod:`nrt.modules.stages.components`): every such config builds
+with the stage or formulation it belongs to and is refused with a ``ConfigError`` naming its
+group by the others; the default compositions build the very modules they built before the
+groups existed; checkpoints written before load."""
 
 from __future__ import annotations
 
@@ -25,6 +26,15 @@ from nrt.modules.stages.rte_split import SplitRTEModule
 FORMULATIONS = {"split": (), "paper": ("experiment=rte_paper",)}
 """Stage 2's formulations: the default (split) stage and the paper's."""
 
+GENERATIVE = ("scene=family", "mode=generative")
+"""Stage 1 over a scene family: the density field built with the codes' ``latent_dim``."""
+
+
+def stage2(*stages: str) -> dict[str, tuple[str, ...]]:
+    """The compositions of ``stages`` in both stage-2 formulations."""
+    return {f"{formulation} {stage}": (f"stage={stage}", *extra)
+            for formulation, extra in FORMULATIONS.items() for stage in stages}
+
 
 def build(*overrides: str):
     """The model of ``preset=tiny init=none`` and ``overrides``, as nrt-train builds it; a
@@ -40,34 +50,35 @@ def options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONFIG_DIR / "model" / group).glob("*.yaml"))
 
 
-@pytest.mark.parametrize(("group", "attribute", "stages"), [
-    ("light_field", "light", ("rte", "forward")),
-    ("medium", "medium", ("rte",)),  # forward mode builds no medium: the truth is given
+@pytest.mark.parametrize(("group", "attribute", "compositions"), [
+    ("density_field", "field", {"single": ("stage=ea",), "generative": ("stage=ea", *GENERATIVE)}),
+    ("light_field", "light", stage2("rte", "forward")),
+    ("medium", "medium", stage2("rte")),  # forward mode builds no medium: the truth is given
 ])
-def test_every_light_field_and_medium_config_builds_with_its_formulation(group, attribute,
-                                                                         stages):
-    """Each file of ``conf/model/<group>/`` composed with both formulations and the stages
-    that build it: where it fits, the stage holds an object of the config's ``_target_``;
-    where it does not, the refusal is a ``ConfigError`` naming ``model/<group>``; and every
-    file fits at least one formulation (a new representation is one module and one such
-    file, and this test covers it without changes)."""
+def test_every_component_config_builds_with_its_stage(group, attribute, compositions):
+    """Each file of ``conf/model/<group>/`` composed with every stage (and formulation, and
+    mode) that builds it: where it fits, the stage holds an object of the config's
+    ``_target_``; where it does not, the refusal is a ``ConfigError`` naming
+    ``model/<group>``; and every file fits at least one composition (a new representation
+    is one module and one such file, and this test covers it without changes)."""
     names = options(group)
-    assert {"light_field": {"sh_grid", "siren"},
+    assert {"density_field": {"hash_grid"}, "light_field": {"sh_grid", "siren"},
             "medium": {"voxel", "siren", "grid"}}[group] <= set(names)
     for name in names:
         fits = set()
-        for formulation, extra in FORMULATIONS.items():
-            for stage in stages:
-                try:
-                    cfg, model = build(f"stage={stage}", *extra, f"model/{group}={name}")
-                except ConfigError as exc:
-                    assert f"model/{group}" in str(exc), str(exc)
-                    continue
-                built = getattr(model, attribute)
-                target = OmegaConf.select(cfg, f"model.{group}._target_")
-                assert f"{type(built).__module__}.{type(built).__qualname__}" == target
-                fits.add(formulation)
-        assert fits, f"conf/model/{group}/{name}.yaml builds with no formulation"
+        for composition, overrides in compositions.items():
+            try:
+                cfg, model = build(*overrides, f"model/{group}={name}")
+            except ConfigError as exc:
+                assert f"model/{group}" in str(exc), str(exc)
+                continue
+            built = getattr(model, attribute)
+            target = OmegaConf.select(cfg, f"model.{group}._target_")
+            assert f"{type(built).__module__}.{type(built).__qualname__}" == target
+            fits.add(composition)
+        assert fits, f"conf/model/{group}/{name}.yaml builds with no stage"
+    if group == "density_field":  # generative mode hands the field the codes' dimension
+        assert build(*compositions["generative"])[1].field.latent_dim == 4
 
 
 SPLIT_STATE = {
@@ -210,3 +221,70 @@ def test_an_unknown_coupling_key_is_refused_with_the_known_ones():
     otherwise be ignored silently: the stage refuses it and names the keys it knows."""
     with pytest.raises(ConfigError, match=r"unknown keys \['adjiont'\].*'adjoint'"):
         build("stage=rte", "+model.coupling.adjiont=true")
+
+
+def save_checkpoint(path: Path, model, hparams: dict) -> Path:
+    """``model``'s state with ``hparams`` as Lightning writes a checkpoint."""
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
+                "pytorch-lightning_version": lightning.__version__}, path)
+    return path
+
+
+def before_density_field(hparams: dict) -> dict:
+    """A stage-1 checkpoint's hyperparameters as they were before the density field was a
+    component: ``field``, the EAField's keywords (d_z and the modulation's width among them
+    in generative mode), and no ``density_field`` or ``latent_dim``."""
+    old = {k: v for k, v in hparams.items() if k not in ("density_field", "latent_dim")}
+    keywords = {k: v for k, v in hparams["density_field"].items() if not k.startswith("_")}
+    if hparams.get("latent_dim"):
+        keywords["latent_dim"] = hparams["latent_dim"]
+    return {**old, "field": keywords}
+
+
+@pytest.mark.parametrize("mode", ["single", "generative"])
+def test_stage_1_checkpoints_from_before_the_density_field_group_load(tmp_path: Path, mode):
+    """A stage-1 checkpoint records its density field as a config; one written before
+    (``field``: the EAField's keywords alone) loads into the same field: the same density,
+    to the bit, at random points (under a member's code in generative mode), through
+    ``load_from_checkpoint`` and the loaders stage 2 uses."""
+    from nrt.errors import NrtError
+    from nrt.modules.stages.ea import build_density_field, density_field_factory, load_ea_field
+    from nrt.modules.stages.generative_ea import load_generative_ea
+
+    torch.manual_seed(0)
+    cfg, model = build("stage=ea", *(GENERATIVE if mode == "generative" else ()))
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0, 0.1)
+    new = dict(model.hparams)
+    assert new["density_field"]["_target_"] == cfg.model.density_field._target_
+    old = before_density_field(new)
+    assert "density_field" not in old and "_target_" not in old["field"]
+    x = torch.rand(256, 3) * 2 - 1
+    code = model.codes[1].expand(256, -1) if mode == "generative" else None
+    expected = model.field.density(x, code)
+    for name, hparams in (("new", new), ("old", old)):
+        path = save_checkpoint(tmp_path / f"{name}.ckpt", model, hparams)
+        loaded = type(model).load_from_checkpoint(path, map_location="cpu")
+        assert dict(loaded.hparams)["density_field"] == new["density_field"]
+        assert torch.equal(loaded.field.density(x, code), expected)
+        if mode == "single":
+            assert torch.equal(load_ea_field(str(path)).density(x), expected)
+            continue
+        with pytest.raises(NrtError, match="generative EA run"):
+            load_ea_field(str(path))
+        config, field, codes, _ = load_generative_ea(str(path))
+        assert torch.equal(codes, model.codes) and torch.equal(field.density(x, code), expected)
+        # generative stage 2 records that config and rebuilds the field from it
+        rebuilt = build_density_field(density_field_factory(config), 4)
+        rebuilt.load_state_dict(field.state_dict())
+        assert torch.equal(rebuilt.density(x, code), expected)
+
+
+def test_a_density_field_without_density_is_refused_naming_its_group():
+    """A ``model/density_field`` whose target builds but lacks the protocol's ``density``
+    (here a module that takes any keywords) ends in a ``ConfigError`` naming the group and
+    the missing member, not in an ``AttributeError`` in the first training step."""
+    with pytest.raises(ConfigError, match=r"model/density_field: Identity lacks \['bbox', "
+                                          r"'density'\]"):
+        build("stage=ea", "model.density_field._target_=torch.nn.Identity")

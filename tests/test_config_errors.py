@@ -71,7 +71,8 @@ SHAPE_MISTAKES = [  # overrides of nrt-train, what check_arguments must say
      "Its entries are light, medium, density: set each entry: model.lr.light=0.01"),
     (("stage=ea", "model.lr={a:1}"), "model.lr={a: 1}: must be a single value, not a mapping. "
                                      "The default is model.lr=0.01."),
-    (("stage=ea", "model.field=3"), "Its entries are hidden, layers, geo_features"),
+    (("stage=ea", "model.density_field=3"),
+     "It is the config group model/density_field: choose an option with model/density_field="),
     (("stage=dpt", "model.resolutions=8"), "give a list of one: model.resolutions=[8]"),
     (("stage=rte", "model.sun=5"), "model.sun=5: must be a mapping or null"),
     (("stage=rte", "model.samples=null"), "model.samples=null: must be a mapping, not null"),

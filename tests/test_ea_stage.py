@@ -154,8 +154,8 @@ def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, nam
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
     folder = ensure_dataset(scene, tmp_path, progress=False)
     model_cfg = OmegaConf.to_container(cfg.model, resolve=False)
-    model_cfg["field"]["hash_grid"] = {"levels": 8, "log2_table_size": 15}
-    model = EAModule(field=model_cfg["field"], samples_per_ray=32)
+    model_cfg["density_field"]["hash_grid"] = {"levels": 8, "log2_table_size": 15}
+    model = EAModule(density_field=model_cfg["density_field"], samples_per_ray=32)
     dm = RayDataModule(str(folder), batch_size=512, steps_per_epoch=200, val_views=1)
     assert fit(model, dm, 200).global_step == 200
     assert torch.isfinite(model.density_grid(16)).all()

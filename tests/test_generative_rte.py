@@ -148,7 +148,7 @@ def test_stage_composes_the_generative_components():
     assert cfg.data._target_ == "nrt.data.datamodule.FamilyRayDataModule"
     check_mode(cfg)
     ea = compose_config("train", list(GENERATIVE_FAMILY))  # stage 1 is unchanged
-    assert ea.model._target_.endswith("GenerativeEAModule") and ea.model.field.latent_dim == 4
+    assert ea.model._target_.endswith("GenerativeEAModule") and ea.model.latent_dim == 4
 
 
 def test_member_mean_is_the_mean_over_all_items():

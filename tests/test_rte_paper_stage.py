@@ -97,7 +97,8 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     ("forward", ("scene.effects.max_scattering_order=0",), "max_scattering_order=0"),
     ("ea", ("budget.ea.steps=-3",), "budget.ea.steps=-3"),
     ("ea", ("budget_s=-5",), "budget_s=-5"),
-    ("ea", ("model.field.density_activation=relu",), "model.field.density_activation"),
+    ("ea", ("model.density_field.density_activation=relu",),
+     "model.density_field.density_activation"),
     ("rte", ("init=none", "+losses.weights.foo=1"), "losses.weights has unknown objectives"),
 ])
 def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, needle):

@@ -73,11 +73,13 @@ def _unknown_key(exc: ConfigKeyError | ConfigAttributeError, command: str) -> Co
 
 
 def _no_group(group: str, command: str) -> ConfigError:
+    stage = "ea" if group.endswith("density_field") else "rte"
     return ConfigError(
         f"{_given(group) or group}: this composition has no config group '{group}' to "
-        f"choose from (sub-groups belong to the configs that list them: model/light_field "
-        f"and model/medium to stage=rte and stage=forward). Pick the stage first "
-        f"(`{command} stage=rte {group}=<option>`), or see `{command} --help` for the groups.")
+        f"choose from (sub-groups belong to the configs that list them: model/density_field "
+        f"to stage=ea, model/light_field and model/medium to stage=rte and stage=forward). "
+        f"Pick the stage first (`{command} stage={stage} {group}=<option>`), or see "
+        f"`{command} --help` for the groups.")
 
 
 def _missing_option(exc: MissingConfigException, command: str) -> ConfigError:

@@ -43,7 +43,7 @@ class EAField(nn.Module):
                  density_bias: float = -1.0, latent_dim: int = 0, modulation_hidden: int = 32):
         super().__init__()
         if density_activation not in DENSITY_ACTIVATIONS:
-            raise ConfigError(f"model.field.density_activation must be one of "
+            raise ConfigError(f"model.density_field.density_activation must be one of "
                               f"{sorted(DENSITY_ACTIVATIONS)}, got '{density_activation}'.")
         self.encoding = HashGrid(**(hash_grid or {}))
         self.density_net = mlp(self.encoding.output_dim, hidden, 1 + geo_features, layers)

@@ -1,5 +1,6 @@
-"""What the stage-2 formulations need of the light field and the medium that Hydra builds
-for them (``model/light_field=<name>``, ``model/medium=<name>``; see
+"""What the stages need of the density field, the light field and the medium that Hydra
+builds for them (``model/density_field=<name>``, ``model/light_field=<name>``,
+``model/medium=<name>``; see
 :mod:`nrt.modules.stages.components`). Each protocol lists the members a stage, its objectives and
 its renderers use; a stage builds its components through :func:`build`, which checks them.
 
@@ -21,8 +22,10 @@ from nrt.errors import ConfigError
 
 
 class DensityField(Protocol):
-    """Stage 1's density, which stage 2 bakes and modulates (by default
-    :class:`~nrt.modules.fields.ea_field.EAField`)."""
+    """Stage 1's density, which stage 2 bakes and modulates (``model/density_field=<name>``;
+    by default :class:`~nrt.modules.fields.ea_field.EAField`). Built as ``factory()``, or
+    ``factory(latent_dim=d_z)`` in generative mode; stage 1 also renders it as a module,
+    ``field(x, d, latent) -> (density (...,), rgb (..., 3))`` along view directions ``d``."""
 
     bbox: torch.Tensor
 

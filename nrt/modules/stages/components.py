@@ -1,8 +1,9 @@
 """Components a stage receives from Hydra: factories, their protocols, and how checkpoints
 record them.
 
-A stage-2 model config picks its light field and medium by config group
-(``model/light_field=<name>``, ``model/medium=<name>``). Each option is a file with a
+A model config picks its components by config group (stage 1's
+``model/density_field=<name>``; stage 2's ``model/light_field=<name>``,
+``model/medium=<name>``). Each option is a file with a
 ``_target_`` and ``_partial_: true``: Hydra hands the stage a :func:`functools.partial`, and
 the stage calls it with what only it knows (the scene's effects, the EA density field).
 The stage then checks the component against the protocol it needs

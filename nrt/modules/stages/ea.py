@@ -1,6 +1,7 @@
 """Stage 1: the emission-absorption LightningModule (``nrt-train stage=ea``).
 
-Renders camera rays through an :class:`~nrt.modules.fields.ea_field.EAField` inside the medium
+Renders camera rays through a density field (``model/density_field=<name>``; by default the
+hash-grid :class:`~nrt.modules.fields.ea_field.EAField`) inside the medium
 box with stratified jittered samples, alpha-composites them in front of the known
 background ``E(v)`` and fits the photos (MSE after the log tonemap: HDR pixels would
 otherwise let the sun's glints dominate). Validation renders held-out views and
@@ -9,6 +10,8 @@ compares the learned density with the ground-truth extinction where available.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +19,9 @@ import torch
 
 from nrt.errors import ConfigError, NrtError
 from nrt.metrics import density_agreement
-from nrt.modules.fields.ea_field import EAField
+from nrt.modules.fields.protocols import DensityField, build
 from nrt.modules.renderers.emission_absorption import render_rays
+from nrt.modules.stages.components import as_factory, factory_config, legacy_config
 from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.tonemap import log_tonemap, luminance
 from nrt.physics.volume import at_cell_centres
@@ -31,22 +35,84 @@ PHOTOMETRIC_LOSSES = {
 }
 
 
-class EAModule(Stage):
-    """Fits an :class:`EAField` to the training photos of a scene. It learns a density,
-    not a medium (no property grids; its export is ``density_grid.npz``)."""
+FITS = ("Stage 1 (stage=ea) renders a density field with a colour: a module with "
+        "density(x, latent) and field(x, d, latent) -> (density, rgb), as "
+        "model/density_field=hash_grid builds")
 
-    def __init__(self, field: dict, samples_per_ray: int = 64, loss: str = "log_mse",
-                 lr: float = 1e-2,
+EA_FIELD = "nrt.modules.fields.ea_field.EAField"
+"""The density field of checkpoints written before it was a component (their ``field``:
+the :class:`~nrt.modules.fields.ea_field.EAField`'s keywords alone)."""
+
+
+def legacy_density_field(keywords: dict) -> dict:
+    """The config of the density field that a checkpoint written before it was a component
+    records as ``field`` (the EAField's keywords); d_z (``latent_dim``) leaves the keywords,
+    since the stage passes it."""
+    return legacy_config(EA_FIELD)({k: v for k, v in keywords.items() if k != "latent_dim"})
+
+
+def density_field_config(hparams: dict) -> dict:
+    """The density field's config (``_target_``, ``_partial_``, keywords) that a stage-1
+    checkpoint's hyperparameters record: ``density_field``, or, in checkpoints written
+    before it was a component, ``field`` translated (:func:`legacy_density_field`)."""
+    if hparams.get("density_field") is not None:
+        return dict(hparams["density_field"])
+    return legacy_density_field(dict(hparams.get("field") or {}))
+
+
+def density_field_factory(component: Callable | dict | None, field: dict | None = None
+                          ) -> functools.partial:
+    """The density field's factory from what a stage receives: Hydra's partial or a
+    recorded config (``component``), or, where that is None, ``field``: the
+    :class:`~nrt.modules.fields.ea_field.EAField` keywords of a checkpoint written before
+    the density field was a component."""
+    return as_factory((field or {}) if component is None else component, "density_field",
+                      legacy_density_field)
+
+
+def build_density_field(factory: Callable[..., DensityField], latent_dim: int | None = None
+                        ) -> DensityField:
+    """``factory()``, or ``factory(latent_dim=d_z)`` for a field conditioned on codes,
+    checked against :class:`~nrt.modules.fields.protocols.DensityField` (a misfit is a
+    ``ConfigError`` naming ``model/density_field``)."""
+    codes = {} if latent_dim is None else {"latent_dim": latent_dim}
+    return build(factory, DensityField, "density_field", FITS, **codes)
+
+
+def latent_dim_of(hparams: dict) -> int:
+    """d_z of a stage-1 checkpoint's field: ``latent_dim`` (in the field's keywords before
+    it was a component); 0 for a single scene."""
+    return int(hparams.get("latent_dim") or (hparams.get("field") or {}).get("latent_dim") or 0)
+
+
+class EAModule(Stage):
+    """Fits a density field (:class:`~nrt.modules.fields.protocols.DensityField`; by default
+    the hash-grid :class:`~nrt.modules.fields.ea_field.EAField`) to the training photos of
+    a scene. It learns a density, not a medium (no property grids; its export is
+    ``density_grid.npz``).
+
+    ``density_field`` is the factory Hydra builds from ``model/density_field`` (a checkpoint
+    holds its config); the stage calls it with ``latent_dim`` when that is set (the codes'
+    d_z in generative mode; None for one scene). ``field`` is the key of checkpoints written
+    before the density field was a component (the ``EAField``'s keywords), read when
+    ``density_field`` is absent."""
+
+    def __init__(self, density_field: Callable[..., DensityField] | dict | None = None,
+                 samples_per_ray: int = 64, loss: str = "log_mse", lr: float = 1e-2,
                  eps: float = 1e-15, weight_decay: float = 1e-6, eval_chunk: int = 8192,
-                 density_resolution: int | None = None):
+                 density_resolution: int | None = None, latent_dim: int | None = None,
+                 field: dict | None = None):
         super().__init__()
-        self.save_hyperparameters()
+        make_field = density_field_factory(density_field, field)
+        # the hyperparameters record the field's config: a checkpoint pickles no code
+        density_field = factory_config(make_field)
+        self.save_hyperparameters(ignore=["field"])
         if loss not in PHOTOMETRIC_LOSSES:
             raise ConfigError(f"losses.photometric must be one of {sorted(PHOTOMETRIC_LOSSES)}, "
                               f"got '{loss}'.")
         check_learning_rates(lr, "model.lr")
         self.photometric = PHOTOMETRIC_LOSSES[loss]
-        self.field = EAField(**field)
+        self.field = build_density_field(make_field, latent_dim)
 
     def setup(self, stage: str) -> None:
         dm = self.datamodule()
@@ -54,7 +120,10 @@ class EAModule(Stage):
             self.field.bbox.copy_(dm.bbox.to(self.field.bbox))
 
     def configure_optimizers(self):
-        enc = list(self.field.encoding.parameters())
+        """Adam over the field's parameters, weight decay on all but its ``encoding``'s (if it
+        has one: a hash grid's table is not decayed)."""
+        encoding = getattr(self.field, "encoding", None)
+        enc = list(encoding.parameters()) if encoding is not None else []
         enc_ids = {id(p) for p in enc}
         rest = [p for p in self.field.parameters() if id(p) not in enc_ids]
         return torch.optim.Adam(
@@ -148,12 +217,13 @@ def check_checkpoint_file(ckpt_path: str | None, first_stage: str) -> None:
                        "(single-scene stage 2 also runs without a first stage: init=none).")
 
 
-def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu") -> EAField:
-    """The trained EA field of a stage-1 checkpoint (for the density queries of the stages
+def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu"
+                  ) -> DensityField:
+    """The trained density field of a stage-1 checkpoint (for the density queries of the stages
     that start from it); a missing file is a user error naming the fix."""
     check_checkpoint_file(ckpt_path, "nrt-train stage=ea scene=<same scene>")
     saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
-    if saved.get("hyper_parameters", {}).get("field", {}).get("latent_dim", 0):
+    if latent_dim_of(saved.get("hyper_parameters", {})):
         raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a generative EA run over a scene family "
                        "(mode=generative): its field needs a member's latent code. Train stage "
                        "2 on the family (nrt-train stage=rte mode=generative scene=family "

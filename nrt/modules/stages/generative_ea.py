@@ -3,10 +3,10 @@ auto-decoder in the DeepSDF manner (Park et al. 2019) over the K members of a sc
 
 Member k has an optimisable latent code ``z_k`` (d_z values, drawn from
 ``N(0, latent_init_std^2)`` at the start) under an L2 prior: the loss is the photometric
-loss plus ``latent_prior_weight * mean_k |z_k|^2``. The EA field is conditioned on z
-(:class:`~nrt.modules.fields.ea_field.EAField` with ``latent_dim = d_z``: its hash-grid features
-multiplied by ``1 + M(z)``), and each ray is rendered with its member's code, so a batch
-that mixes members trains the shared field and every code in it. The codes are the
+loss plus ``latent_prior_weight * mean_k |z_k|^2``. The density field is conditioned on z
+(built with ``latent_dim = d_z``; :class:`~nrt.modules.fields.ea_field.EAField`: its
+hash-grid features multiplied by ``1 + M(z)``), and each ray is rendered with its member's
+code, so a batch that mixes members trains the shared field and every code in it. The codes are the
 module's parameter ``codes`` (K, d_z), so checkpoints hold them and a resumed run
 continues them; they have their own optimiser group (``latent_lr``, no weight decay: the
 prior is their regulariser).
@@ -22,6 +22,7 @@ fitted.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -29,8 +30,16 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError, DatasetError, NrtError
-from nrt.modules.fields.ea_field import EAField
-from nrt.modules.stages.ea import DENSITY_GRID_FILE, EAModule, check_checkpoint_file
+from nrt.modules.fields.protocols import DensityField
+from nrt.modules.stages.components import factory_config
+from nrt.modules.stages.ea import (
+    DENSITY_GRID_FILE,
+    EAModule,
+    check_checkpoint_file,
+    density_field_config,
+    density_field_factory,
+    latent_dim_of,
+)
 from nrt.modules.stages.stage import check_learning_rates
 from nrt.run_dirs import read_run_info
 from nrt.tensorboard import log_image
@@ -40,22 +49,29 @@ MEMBERS_DIR = "members"
 
 
 class GenerativeEAModule(EAModule):
-    """An :class:`EAModule` whose field is conditioned on one latent code per family member
-    (``members`` = K); ``field`` must set ``latent_dim`` >= 1 (d_z). Batches carry each
-    ray's ``member``; the rest of the arguments are :class:`EAModule`'s."""
+    """An :class:`EAModule` whose density field is conditioned on one latent code per
+    family member (``members`` = K, codes of ``latent_dim`` = d_z >= 1 values, passed to the
+    field's factory). Batches carry each ray's ``member``; the rest of the arguments are
+    :class:`EAModule`'s (checkpoints written before the density field was a component hold
+    d_z in ``field``)."""
 
-    def __init__(self, field: dict, members: int, latent_init_std: float = 0.01,
-                 latent_prior_weight: float = 1e-4, latent_lr: float = 1e-2, **kwargs):
-        dim = field.get("latent_dim", 0)
+    def __init__(self, members: int, latent_dim: int | None = None,
+                 density_field: Callable[..., DensityField] | dict | None = None,
+                 latent_init_std: float = 0.01, latent_prior_weight: float = 1e-4,
+                 latent_lr: float = 1e-2, field: dict | None = None, **kwargs):
+        if latent_dim is None:  # a checkpoint from before: d_z in the field's keywords
+            latent_dim = latent_dim_of({"field": field})
+        # the hyperparameters record the field's config: a checkpoint pickles no code
+        density_field = factory_config(density_field_factory(density_field, field))
         if isinstance(members, bool) or not isinstance(members, int) or members < 1:
             raise ConfigError(f"model.members={members}: the number of family members K "
                               "must be a whole number >= 1 (scene.family.members).")
-        if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
-            raise ConfigError(f"model.field.latent_dim={dim}: the generative mode needs latent "
+        if isinstance(latent_dim, bool) or not isinstance(latent_dim, int) or latent_dim < 1:
+            raise ConfigError(f"model.latent_dim={latent_dim}: the generative mode needs latent "
                               "codes of at least one dimension (mode.latent.dim).")
         check_learning_rates(latent_lr, "model.latent_lr")
-        super().__init__(field=field, **kwargs)
-        self.codes = nn.Parameter(torch.randn(members, dim) * latent_init_std)
+        super().__init__(density_field=density_field, latent_dim=latent_dim, **kwargs)
+        self.codes = nn.Parameter(torch.randn(members, latent_dim) * latent_init_std)
 
     # ------------------------------------------------------------------ training
     def configure_optimizers(self):
@@ -147,16 +163,17 @@ def save_latents(run_dir: str | Path, codes: torch.Tensor, names: list[str],
     return str(path)
 
 
-def load_generative_ea(ckpt_path: str | None) -> tuple[dict, EAField, torch.Tensor,
+def load_generative_ea(ckpt_path: str | None) -> tuple[dict, DensityField, torch.Tensor,
                                                        list[dict] | None]:
-    """What generative stage 2 takes from a generative EA checkpoint: the field's config,
-    the field (on the CPU), the codes (K, d_z) and the members (``index``, ``seed``,
-    ``name``, as the run's ``run.json`` records them; None where it has none). A
+    """What generative stage 2 takes from a generative EA checkpoint: the density field's
+    config (:func:`~nrt.modules.stages.ea.density_field_config`; its factory takes
+    ``latent_dim``), the field (on the CPU), the codes (K, d_z) and the members (``index``,
+    ``seed``, ``name``, as the run's ``run.json`` records them; None where it has none). A
     missing file, or a single-scene EA run, is a user error naming the fix."""
     check_checkpoint_file(ckpt_path, "nrt-train stage=ea mode=generative scene=family")
     saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
-    field = dict(saved.get("hyper_parameters", {}).get("field", {}))
-    if not field.get("latent_dim") or "codes" not in saved.get("state_dict", {}):
+    hparams = saved.get("hyper_parameters", {})
+    if not latent_dim_of(hparams) or "codes" not in saved.get("state_dict", {}):
         raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a single-scene EA run; stage 2 in "
                        "generative mode starts from a generative EA run over the same family "
                        "(nrt-train stage=ea mode=generative scene=family, then pass its "
@@ -164,4 +181,4 @@ def load_generative_ea(ckpt_path: str | None) -> tuple[dict, EAField, torch.Tens
     module = GenerativeEAModule.load_from_checkpoint(ckpt_path, map_location="cpu")
     codes = module.codes.detach().clone()
     info = read_run_info(Path(ckpt_path).resolve().parent.parent)
-    return field, module.field, codes, info.get("members")
+    return density_field_config(hparams), module.field, codes, info.get("members")

@@ -45,10 +45,10 @@ from torch import nn
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import ConfigError, DatasetError
-from nrt.modules.fields.ea_field import EAField
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.modules.stages.components import as_factory, factory_config
+from nrt.modules.stages.ea import build_density_field, density_field_factory
 from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
 from nrt.modules.stages.rte_split import SplitRTEModule, detached
 from nrt.modules.stages.stage import check_learning_rates
@@ -62,7 +62,8 @@ FITS = ("Generative stage 2 (stage=rte mode=generative) takes the latent light f
 
 class GenerativeRTEModule(SplitRTEModule):
     """The split stage 2 over the ``members`` (K) of a family, conditioned on codes of
-    ``latent_dim`` (d_z) values. ``ea_field`` (the EA field's config) and ``member_info``
+    ``latent_dim`` (d_z) values. ``ea_field`` (the EA run's density-field config; before
+    it was a component, the ``EAField``'s keywords) and ``member_info``
     (``name``, ``seed`` of each member) come from the EA checkpoint (``density.ea_ckpt``)
     when the run starts, and from the stage's own checkpoint when it is loaded; the rest of
     the arguments are :class:`~nrt.modules.stages.rte_split.SplitRTEModule`'s."""
@@ -101,7 +102,8 @@ class GenerativeRTEModule(SplitRTEModule):
                 [{"name": str(m["name"]), "seed": int(m["seed"])} for m in info]
             self.hparams.update(ea_field=ea_field, member_info=member_info)
         else:  # loaded from this stage's checkpoint: the values follow
-            field, codes = EAField(**ea_field), torch.zeros(members, latent_dim)
+            field = build_density_field(density_field_factory(ea_field), latent_dim)
+            codes = torch.zeros(members, latent_dim)
         self.ea = field.requires_grad_(False)
         self._encoding: torch.Tensor | None = None
         self.codes = nn.Parameter(codes.clone())
