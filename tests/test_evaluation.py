@@ -154,6 +154,33 @@ def test_novel_environments_are_those_not_trained_on():
         choose_environments(data, ["sky9"], [])
 
 
+@pytest.mark.parametrize("resolution", [5, 12])
+def test_property_grids_resample_as_a_lookup_at_the_new_cell_centres(resolution):
+    """nrt-eval scores a medium on the ground truth's cells through ``resample_grids``,
+    which resamples with :func:`~nrt.physics.volume.resample_cells` (the one resampler).
+    Reference: the trilinear lookup :func:`sample_grid` (``grid_sample``) at the new cells'
+    centres in a box that is not the unit box (the box must not matter). Both are float32
+    trilinear weights of the same 8 cells, differing in rounding only: a few ulps of values
+    of order 1, so 1e-5 is far below any misplaced cell (which moves values by ~0.1 here).
+    A grid already at the resolution comes back unchanged."""
+    from nrt.data.grids import resample_grids
+    from nrt.physics.volume import cell_centres, sample_grid
+
+    gen = torch.Generator().manual_seed(0)
+    grids = {"sigma_a": torch.rand(8, 8, 8, 3, generator=gen),
+             "sigma_s": torch.rand(8, 8, 8, 3, generator=gen) * 4,
+             "g": torch.rand(8, 8, 8, generator=gen) * 1.8 - 0.9}
+    box = torch.tensor([[-1.5, 0.0, 2.0], [0.5, 3.0, 2.5]])
+    out = resample_grids(grids, resolution)
+    stacked = torch.cat((grids["sigma_a"], grids["sigma_s"], grids["g"][..., None]), -1)
+    expected = sample_grid(stacked, cell_centres(resolution, box), box)
+    assert out["g"].shape == (resolution,) * 3 and out["sigma_s"].shape == (resolution,) * 3 + (3,)
+    for key, sl in (("sigma_a", slice(0, 3)), ("sigma_s", slice(3, 6)), ("g", 6)):
+        torch.testing.assert_close(out[key], expected[..., sl], atol=1e-5, rtol=1e-5)
+    same = resample_grids(grids, 8)
+    assert all(same[k] is grids[k] for k in grids)
+
+
 def test_mitsuba_export_renders_like_the_dataset_scene(tmp_path, tiny_dataset):
     """medium.xml + .vol files describe the same medium as the renderer's scene dict."""
     from nrt.mitsuba.export import write_medium_files

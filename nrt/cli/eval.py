@@ -106,7 +106,7 @@ def eval_task(cfg: DictConfig) -> dict:
     grids = medium["grids"]
     bbox = grids.get("bbox", data.bbox)
     if cfg.export.resolution and grids["g"].shape[0] != int(cfg.export.resolution):
-        grids = resample_grids(grids, int(cfg.export.resolution), bbox)
+        grids = resample_grids(grids, int(cfg.export.resolution))
     grids = {k: grids[k] for k in ("sigma_a", "sigma_s", "g")}
     save_property_grids(out_dir / MEDIUM_GRIDS_FILE, grids, bbox)
     if cfg.export.mitsuba:
@@ -114,7 +114,7 @@ def eval_task(cfg: DictConfig) -> dict:
         write_medium_files(mi, out_dir / "volumes", grids, bbox, medium["effects"])
     result = evaluate.Evaluation()
     if data.ground_truth is not None:
-        result.metrics.update(evaluate.property_metrics(grids, data.ground_truth, bbox,
+        result.metrics.update(evaluate.property_metrics(grids, data.ground_truth,
                                                         medium["effects"]))
     evaluate.rerender_metrics(grids, medium["effects"], data, medium["trained"],
                               cfg.rerender, lpips, result)

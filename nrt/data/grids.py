@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from nrt.errors import DatasetError
-from nrt.physics.volume import cell_centres, sample_grid
+from nrt.physics.volume import resample_cells
 
 PROPERTY_KEYS = ("sigma_a", "sigma_s", "g")
 MEDIUM_GRIDS_FILE = "medium_grids.npz"
@@ -66,13 +66,15 @@ def load_property_grids(path: str | Path) -> dict[str, torch.Tensor]:
     return {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in arrays.items()}
 
 
-def resample_grids(grids: Mapping[str, torch.Tensor], resolution: int,
-                   bbox: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Trilinear (cell-centred, edge-clamped) resampling of property grids to R^3 cells."""
-    if grids["g"].shape[0] == resolution and all(s == resolution for s in grids["g"].shape):
+def resample_grids(grids: Mapping[str, torch.Tensor], resolution: int
+                   ) -> dict[str, torch.Tensor]:
+    """Property grids on ``resolution``^3 cells of the same box: the three resampled
+    together by :func:`~nrt.physics.volume.resample_cells` (trilinear, cell-centred,
+    edge-clamped, float32), the extinctions clamped at 0; returned as they are when already
+    at that resolution."""
+    if all(s == resolution for s in grids["g"].shape):
         return {k: grids[k] for k in PROPERTY_KEYS}
-    pts = cell_centres(resolution, bbox.float())
     stacked = torch.cat((grids["sigma_a"], grids["sigma_s"], grids["g"].unsqueeze(-1)), -1)
-    out = sample_grid(stacked.float(), pts, bbox.float())
+    out = resample_cells(stacked.float(), resolution)
     return {"sigma_a": out[..., :3].clamp_min(0), "sigma_s": out[..., 3:6].clamp_min(0),
             "g": out[..., 6]}

@@ -56,11 +56,11 @@ def image_metrics(pred, ref, lpips: LPIPS | None = None) -> dict[str, float]:
     return out
 
 
-def property_metrics(grids: Mapping, truth: Mapping, bbox: torch.Tensor,
-                     effects: dict) -> dict[str, float]:
-    """Property MSE x 10^2 on the ground truth's cells (g unless isotropic)."""
+def property_metrics(grids: Mapping, truth: Mapping, effects: dict) -> dict[str, float]:
+    """Property MSE x 10^2 on the ground truth's cells (g unless isotropic); ``grids`` and
+    ``truth`` cover the same box."""
     learned = resample_grids({k: torch.as_tensor(v) for k, v in grids.items()},
-                             truth["g"].shape[0], bbox)
+                             truth["g"].shape[0])
     with_g = effects["phase"] != "isotropic"
     return {f"mse_{k}_x100": float(v) for k, v in property_mse(learned, truth, with_g).items()}
 

@@ -227,15 +227,15 @@ def fid_score(fid: FID, real: torch.Tensor, fake: torch.Tensor) -> float:
     return float(fid.compute())
 
 
-def reconstruction(model: LatentMediumModel, data: FamilyData, bbox: torch.Tensor,
-                   resolution: int) -> list[dict]:
+def reconstruction(model: LatentMediumModel, data: FamilyData, resolution: int
+                   ) -> list[dict]:
     """Each member decoded from its own code against its ground truth: a row per member
     (``member``, ``name``, ``mse_<property>_x100``)."""
     rows = []
     for k, (name, truth) in enumerate(zip(model.member_names(), data.truths, strict=True)):
         grids = decode(model, model.codes[k], resolution, f"member {k} ({name})")
         rows.append({"member": k, "name": name,
-                     **property_metrics(grids, truth, bbox, data.effects)})
+                     **property_metrics(grids, truth, data.effects)})
     return rows
 
 
@@ -248,7 +248,7 @@ def farthest_pair(codes: torch.Tensor) -> tuple[int, int]:
 
 
 def interpolation(model: LatentMediumModel, pair: tuple[int, int], steps: int,
-                  resolution: int, effects: dict, bbox: torch.Tensor
+                  resolution: int, effects: dict
                   ) -> tuple[list[dict[str, torch.Tensor]], list[dict]]:
     """Media along ``z(t) = (1 - t) z_a + t z_b``, t = 0, 1/(steps-1), ..., 1, and a row
     per step with t and the property MSE x 10^2 to both endpoints' media."""
@@ -261,7 +261,7 @@ def interpolation(model: LatentMediumModel, pair: tuple[int, int], steps: int,
         row = {"t": t}
         for end, ref in (("a", media[0]), ("b", media[-1])):
             row.update({k.replace("_x100", f"_to_{end}_x100"): v for k, v in
-                        property_metrics(grids, ref, bbox, effects).items()})
+                        property_metrics(grids, ref, effects).items()})
         rows.append(row)
     return media, rows
 
@@ -353,7 +353,7 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
     timings["decode_render_export_s"] = time.perf_counter() - start
 
     t0 = time.perf_counter()
-    result.members = reconstruction(model, data, bbox, res)
+    result.members = reconstruction(model, data, res)
     for key in result.members[0]:
         if key.startswith("mse_"):
             result.metrics[f"recon_{key}"] = float(np.mean([r[key] for r in result.members]))
@@ -390,7 +390,7 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
     pair = (tuple(settings.interpolate_members) if settings.interpolate_members is not None
             else farthest_pair(codes))
     strip, result.interpolation = interpolation(model, pair, settings.interpolate_steps, res,
-                                                data.effects, bbox)
+                                                data.effects)
     strip_rows = []
     for col in frames:  # a row per sky, each with its own white
         images = [render_frames(g, data.effects, data.cameras, frames[col][:1], spp,

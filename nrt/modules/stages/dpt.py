@@ -274,7 +274,7 @@ class DPTModule(Stage):
         """The grids resampled to R^3 cells in the ground truth's layout."""
         arrays = {k: torch.from_numpy(np.ascontiguousarray(v))
                   for k, v in self.property_arrays().items()}
-        return resample_grids(arrays, resolution, self.bbox.cpu())
+        return resample_grids(arrays, resolution)
 
     def medium_bbox(self) -> torch.Tensor:
         return self.bbox
