@@ -213,7 +213,7 @@ def test_dpt_starts_from_property_grids(tmp_path, phase, chromatic):
                "emitters": []}
     module = DPTModule(effects, {"source": "grids", "grids": str(path)}, [4, 8], [0.5])
     module._init_grids()
-    want = resample_grids(grids, 4, bbox)
+    want = resample_grids(grids, 4)
     sigma_t = want["sigma_a"] + want["sigma_s"]
     if not chromatic:
         sigma_t = sigma_t.mean(-1, keepdim=True)

@@ -166,7 +166,7 @@ class DPTModule(Stage):
                      density["ea_ckpt"], res)
             return
         grids = load_property_grids(density["grids"])
-        grids = resample_grids(grids, res, grids.get("bbox", self.bbox.cpu()))
+        grids = resample_grids(grids, res)  # the file's cells over the same box
         sigma_t = grids["sigma_a"] + grids["sigma_s"]
         albedo = grids["sigma_s"] / sigma_t.clamp_min(1e-12)
         sigma_t = sigma_t if self.sigma_t.shape[-1] == 3 else sigma_t.mean(-1, keepdim=True)
