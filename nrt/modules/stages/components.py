@@ -2,9 +2,11 @@
 record them.
 
 A stage-2 model config picks its light field and medium by config group
-(``model/light_field=<name>``, ``model/medium=<name>``). Each option is a file with a
-``_target_`` and ``_partial_: true``: Hydra hands the stage a :func:`functools.partial`, and
-the stage calls it with what only it knows (the scene's effects, the EA density field).
+(``model/light_field=<name>``, ``model/medium=<name>``), and its objectives by the entries
+of ``losses.objectives`` (:func:`objective_factories`). Each option (a file, or an entry)
+has a ``_target_`` and ``_partial_: true``: Hydra hands the stage a
+:func:`functools.partial`, and the stage calls it with what only it knows (the scene's
+effects, the EA density field; an objective's name and weight schedule).
 The stage then checks the component against the protocol it needs
 (:mod:`nrt.modules.fields.protocols`), so a representation that does not fit is refused naming
 the config group and the members it lacks.
@@ -14,7 +16,8 @@ a stage records each factory as its config (:func:`factory_config`, a plain dict
 ``_target_``), and :func:`as_factory` turns that config back into the factory when
 ``load_from_checkpoint`` rebuilds the stage. Checkpoints written before these were
 components hold the factory's keywords alone (no ``_target_``); a stage reads them with a
-``legacy`` translation.
+``legacy`` translation. Those written before the objectives were components record none;
+the stage builds its formulation's objectives of that time.
 
 Checkpoints and run folders written before the layout of 2026-11-23 (encodings, fields and
 stages in subpackages of :mod:`nrt.modules`) name their classes by the old module paths;
@@ -25,7 +28,8 @@ recorded ``_target_`` is read (here, and ``nrt-eval`` for a run's model).
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 from hydra.utils import instantiate
 
@@ -70,22 +74,46 @@ def factory_config(factory: functools.partial) -> dict:
             **keywords}
 
 
-def as_factory(component, group: str,
-               legacy: Callable[[dict], dict] | None = None) -> functools.partial:
+def factory_configs(factories: Mapping[str, functools.partial]) -> dict[str, dict]:
+    """:func:`factory_config` of each factory, by name (a stage's objectives)."""
+    return {name: factory_config(factory) for name, factory in factories.items()}
+
+
+def as_factory(component, group: str, legacy: Callable[[dict], dict] | None = None,
+               key: str | None = None, home: str | None = None) -> functools.partial:
     """A stage's ``component`` argument as a factory: a partial as Hydra made it, a config
     dict with ``_target_`` (a checkpoint's record) instantiated, or a dict of keywords from
-    an older checkpoint translated by ``legacy`` into such a config. ``group`` names the
-    config group in errors (``light_field``)."""
+    an older checkpoint translated by ``legacy`` into such a config. Errors name the config
+    group ``group`` (``light_field``: the key ``model.light_field``, the files
+    ``conf/model/light_field/<name>.yaml``), or ``key`` and ``home`` for a component that
+    is no group's."""
+    key = key or f"model.{group}"
+    home = home or f"conf/model/{group}/<name>.yaml"
     if isinstance(component, dict):
-        config = component if "_target_" in component or legacy is None else legacy(component)
+        if "_target_" not in component and legacy is None:
+            raise ConfigError(f"{key} has no `_target_`: give it the class to build "
+                              f"(`_target_: <module>.<Class>`, `_partial_: true`; {home}).")
+        config = component if "_target_" in component else legacy(component)
         component = instantiate(current_targets(config), _convert_="all")
     if isinstance(component, functools.partial):
         return component
     raise ConfigError(
-        f"model.{group} is a built {type(component).__name__}, but the stage builds it itself "
-        f"from the scene: give its config (conf/model/{group}/<name>.yaml) `_partial_: true` "
-        "beside its `_target_`.")
+        f"{key} is a built {type(component).__name__}, but the stage builds it itself: give "
+        f"its config ({home}) `_partial_: true` beside its `_target_`.")
 
+
+def objective_factories(objectives: Mapping[str, Any] | None, legacy: Mapping[str, str]
+                        ) -> dict[str, functools.partial]:
+    """A stage's ``objectives`` argument (``losses.objectives``: name -> a unit's factory,
+    or its config as a checkpoint records it) as factories by name; None (a checkpoint
+    written before objectives were configs) gives ``legacy`` (name -> the unit's class),
+    the objectives of that time."""
+    if objectives is None:
+        objectives = {name: {"_target_": target, "_partial_": True}
+                      for name, target in legacy.items()}
+    return {name: as_factory(config, "objectives", key=f"losses.objectives.{name}",
+                             home="conf/losses/<stage>.yaml")
+            for name, config in objectives.items()}
 
 
 def legacy_config(target: str) -> Callable[[dict], dict]:
