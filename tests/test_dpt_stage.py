@@ -194,3 +194,45 @@ def test_dpt_builds_and_differentiates_only_the_grids_the_effects_call_for(
         assert param.grad.shape == param.shape, name
         assert torch.isfinite(param.grad).all() and param.grad.abs().max() > 0, name
     module.teardown("test")
+
+
+@pytest.mark.parametrize(("phase", "chromatic"), [("varying_hg", True), ("hg", False)])
+def test_dpt_starts_from_property_grids(tmp_path, phase, chromatic):
+    """init=grids: the first grids are the file's (resampled to the coarsest resolution):
+    extinction sigma_a + sigma_s (its channel mean when sigma_t is grey), albedo
+    sigma_s / sigma_t, and g where g is learned."""
+    from nrt.data.grids import resample_grids, save_property_grids
+
+    gen = torch.Generator().manual_seed(0)
+    grids = {"sigma_a": torch.rand(8, 8, 8, 3, generator=gen),
+             "sigma_s": 3 * torch.rand(8, 8, 8, 3, generator=gen),
+             "g": 0.8 * torch.rand(8, 8, 8, generator=gen) - 0.4}
+    bbox = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    path = save_property_grids(tmp_path / "medium_grids.npz", grids, bbox)
+    effects = {"phase": phase, "chromatic": chromatic, "max_scattering_order": -1,
+               "emitters": []}
+    module = DPTModule(effects, {"source": "grids", "grids": str(path)}, [4, 8], [0.5])
+    module._init_grids()
+    want = resample_grids(grids, 4, bbox)
+    sigma_t = want["sigma_a"] + want["sigma_s"]
+    if not chromatic:
+        sigma_t = sigma_t.mean(-1, keepdim=True)
+    torch.testing.assert_close(module.sigma_t.data, sigma_t)
+    torch.testing.assert_close(module.albedo.data,
+                               want["sigma_s"] / (want["sigma_a"] + want["sigma_s"]))
+    if phase == "varying_hg":
+        torch.testing.assert_close(module.g.data[..., 0], want["g"])
+
+
+@pytest.mark.parametrize(("density", "ea_detail", "words"), [
+    ({"source": "grids", "grids": "/no/such/medium_grids.npz"}, False, "init.grids="),
+    ({"source": "none"}, False, "init=grids init.grids="),
+    ({"source": "grids", "grids": __file__}, True, "ea_detail"),
+])
+def test_dpt_refuses_a_start_it_cannot_make(density, ea_detail, words):
+    """A start other than an EA density or an existing grid file is refused naming the key."""
+    from nrt.errors import NrtError
+
+    effects = {"phase": "hg", "chromatic": True, "max_scattering_order": -1, "emitters": []}
+    with pytest.raises(NrtError, match=words):
+        DPTModule(effects, density, [4], [], ea_detail=ea_detail)

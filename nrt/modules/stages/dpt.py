@@ -7,7 +7,10 @@ scattering. Mitsuba estimates the gradients by **differentiable delta tracking**
 replay backpropagation), not the differential ratio tracking of the paper's baseline.
 
 - Start: the EA density of the same scene (stage 1) at the coarsest grid into every
-  channel of sigma_t, a neutral albedo (``init_albedo``), g = 0.
+  channel of sigma_t, a neutral albedo (``init_albedo``), g = 0; or (``init=grids``)
+  property grids in the format every stage exports (``init.grids``, a run's
+  ``medium_grids.npz``), resampled to the coarsest grid: the path tracer refines another
+  method's medium with the full multiple-scattering gradient.
 - Each step renders one random training view at ``spp`` with gradients; the loss is the
   MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
   Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.log_image_loss`); ``dr.backward`` gives
@@ -41,8 +44,13 @@ import torch
 from torch import nn
 
 from nrt.cameras import fov_x_deg
-from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
-from nrt.errors import NrtError
+from nrt.data.grids import (
+    MEDIUM_GRIDS_FILE,
+    load_property_grids,
+    resample_grids,
+    save_property_grids,
+)
+from nrt.errors import ConfigError, NrtError
 from nrt.modules.fields.coarse_to_fine import (
     check_schedule,
     decaying_lr,
@@ -60,6 +68,26 @@ log = logging.getLogger(__name__)
 MITSUBA_KEYS = {"sigma_t": "sigma_t.data", "albedo": "albedo.data", "g": "g.data"}
 
 
+def check_start(density: dict, ea_detail: bool) -> None:
+    """Refuse a start other than ``init=ea`` or ``init=grids`` with an existing
+    ``init.grids`` file (and the EA detail, which needs an EA density, with grids)."""
+    source = density.get("source")
+    if source == "ea":
+        return
+    if source != "grids":
+        raise NrtError("stage=dpt starts from the EA density (init=ea) or from property "
+                       f"grids (init=grids init.grids=<medium_grids.npz>); init.source="
+                       f"'{source}' is not supported.")
+    path = density.get("grids")
+    if not path or not Path(str(path)).expanduser().is_file():
+        raise ConfigError(f"init.grids='{path}': init=grids starts stage=dpt from a property-"
+                          "grid file (sigma_a, sigma_s, g; a run's medium_grids.npz); give "
+                          "an existing file, or use init=ea for the EA density.")
+    if ea_detail:
+        raise ConfigError("budget.dpt.ea_detail=true adds the EA density's detail at each "
+                          "doubling, but init=grids has no EA density: set it false.")
+
+
 class DPTModule(Stage):
     """Grids of sigma_t, albedo (and g) fitted by differentiable path tracing."""
 
@@ -74,9 +102,7 @@ class DPTModule(Stage):
         self.automatic_optimization = False
         check_schedule(resolutions, upsample_at, "budget.dpt.resolutions / upsample_at")
         check_learning_rates(lr, "losses.lr")
-        if density.get("source") != "ea":
-            raise NrtError("stage=dpt starts from the EA density (init=ea); init.source="
-                           f"'{density.get('source')}' is not supported.")
+        check_start(density, ea_detail)
         res, channels = int(resolutions[0]), 3 if effects.get("chromatic", True) else 1
         self.sigma_t = nn.Parameter(torch.ones(res, res, res, channels))
         self.albedo = nn.Parameter(torch.full((res, res, res, 3), float(init_albedo)))
@@ -109,7 +135,7 @@ class DPTModule(Stage):
             return
         self.bbox.copy_(dm.bbox)
         if not self._started:  # a resume overwrites it later; a trained module keeps its grids
-            self._init_from_ea(self.hparams.density["ea_ckpt"])
+            self._init_grids()
         gt = dm.ground_truth
         if self.effects["phase"] == "hg" and not self._started:
             if self.hparams.phase_g is not None:
@@ -130,10 +156,25 @@ class DPTModule(Stage):
         self._renderer = None
 
     @torch.no_grad()
-    def _init_from_ea(self, ckpt: str | None) -> None:
-        res = self.sigma_t.shape[0]
-        self.sigma_t.copy_(self._ea_density(res).expand_as(self.sigma_t))
-        log.info("dpt starts from the EA density of %s at %d^3 cells", ckpt, res)
+    def _init_grids(self) -> None:
+        """The start: the EA density into sigma_t (``init=ea``), or every grid from
+        ``init.grids`` (``init=grids``), at the current resolution."""
+        res, density = self.sigma_t.shape[0], self.hparams.density
+        if density["source"] == "ea":
+            self.sigma_t.copy_(self._ea_density(res).expand_as(self.sigma_t))
+            log.info("dpt starts from the EA density of %s at %d^3 cells",
+                     density["ea_ckpt"], res)
+            return
+        grids = load_property_grids(density["grids"])
+        grids = resample_grids(grids, res, grids.get("bbox", self.bbox.cpu()))
+        sigma_t = grids["sigma_a"] + grids["sigma_s"]
+        albedo = grids["sigma_s"] / sigma_t.clamp_min(1e-12)
+        sigma_t = sigma_t if self.sigma_t.shape[-1] == 3 else sigma_t.mean(-1, keepdim=True)
+        self.sigma_t.copy_(sigma_t.clamp(0, self.hparams.max_sigma_t))
+        self.albedo.copy_(albedo.clamp(0, 1))
+        if self.g is not None:
+            self.g.copy_(grids["g"].clamp(-G_MAX, G_MAX).unsqueeze(-1))
+        log.info("dpt starts from the property grids %s at %d^3 cells", density["grids"], res)
 
     @torch.no_grad()
     def _ea_density(self, res: int) -> torch.Tensor:

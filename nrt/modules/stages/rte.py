@@ -85,8 +85,8 @@ class RadiativeTransferStage(Stage):
                 "photos rendered with truncated transport. Render the scene with -1 to train "
                 "stage 2 on it.")
         if density["source"] not in DENSITY_SOURCES:
-            raise NrtError(f"init.source must be one of {list(DENSITY_SOURCES)}, got "
-                           f"'{density['source']}'.")
+            raise NrtError(f"init.source must be one of {list(DENSITY_SOURCES)} for stage 2, "
+                           f"got '{density['source']}' (init=grids starts stage=dpt only).")
         self.learns_medium = density["source"] != "ground_truth"
         """False in forward mode, whose medium is the dataset's ground truth (set up later)."""
         self.medium: Medium | None = None
