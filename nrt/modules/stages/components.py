@@ -3,7 +3,7 @@ record them.
 
 A stage-2 model config picks its light field and medium by config group
 (``model/light_field=<name>``, ``model/medium=<name>``), and its objectives by the entries
-of ``losses.objectives`` (:func:`objective_factories`). Each option (a file, or an entry)
+of ``losses.objectives`` (:func:`objective_components`). Each option (a file, or an entry)
 has a ``_target_`` and ``_partial_: true``: Hydra hands the stage a
 :func:`functools.partial`, and the stage calls it with what only it knows (the scene's
 effects, the EA density field; an objective's name and weight schedule).
@@ -74,11 +74,6 @@ def factory_config(factory: functools.partial) -> dict:
             **keywords}
 
 
-def factory_configs(factories: Mapping[str, functools.partial]) -> dict[str, dict]:
-    """:func:`factory_config` of each factory, by name (a stage's objectives)."""
-    return {name: factory_config(factory) for name, factory in factories.items()}
-
-
 def as_factory(component, group: str, legacy: Callable[[dict], dict] | None = None,
                key: str | None = None, home: str | None = None) -> functools.partial:
     """A stage's ``component`` argument as a factory: a partial as Hydra made it, a config
@@ -102,18 +97,19 @@ def as_factory(component, group: str, legacy: Callable[[dict], dict] | None = No
         f"its config ({home}) `_partial_: true` beside its `_target_`.")
 
 
-def objective_factories(objectives: Mapping[str, Any] | None, legacy: Mapping[str, str]
-                        ) -> dict[str, functools.partial]:
+def objective_components(objectives: Mapping[str, Any] | None, legacy: Mapping[str, str]
+                         ) -> tuple[dict[str, functools.partial], dict[str, dict]]:
     """A stage's ``objectives`` argument (``losses.objectives``: name -> a unit's factory,
-    or its config as a checkpoint records it) as factories by name; None (a checkpoint
-    written before objectives were configs) gives ``legacy`` (name -> the unit's class),
-    the objectives of that time."""
+    or its config as a checkpoint records it) as factories by name, and their configs (what
+    the stage records). None (a checkpoint written before objectives were configs) gives
+    ``legacy`` (name -> the unit's class), the objectives of that time."""
     if objectives is None:
         objectives = {name: {"_target_": target, "_partial_": True}
                       for name, target in legacy.items()}
-    return {name: as_factory(config, "objectives", key=f"losses.objectives.{name}",
-                             home="conf/losses/<stage>.yaml")
-            for name, config in objectives.items()}
+    factories = {name: as_factory(config, "objectives", key=f"losses.objectives.{name}",
+                                  home="conf/losses/<stage>.yaml")
+                 for name, config in objectives.items()}
+    return factories, {name: factory_config(f) for name, f in factories.items()}
 
 
 def legacy_config(target: str) -> Callable[[dict], dict]:

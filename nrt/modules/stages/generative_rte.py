@@ -49,12 +49,7 @@ from nrt.modules.fields.ea_field import EAField
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.modules.fields.voxel_medium import detached
-from nrt.modules.stages.components import (
-    as_factory,
-    factory_config,
-    factory_configs,
-    objective_factories,
-)
+from nrt.modules.stages.components import as_factory, factory_config, objective_components
 from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
 from nrt.modules.stages.rte_split import SPLIT_OBJECTIVES, SplitRTEModule
 from nrt.modules.stages.stage import check_learning_rates
@@ -94,8 +89,8 @@ class GenerativeRTEModule(SplitRTEModule):
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field = factory_config(as_factory(light_field, "light_field"))
         medium = factory_config(as_factory(medium, "medium"))
-        kwargs["objectives"] = factory_configs(objective_factories(kwargs.get("objectives"),
-                                                                   SPLIT_OBJECTIVES))
+        _, kwargs["objectives"] = objective_components(kwargs.get("objectives"),
+                                                       SPLIT_OBJECTIVES)
         super().__init__(light_field=light_field, medium=medium, **kwargs)
         if ea_field is None:  # a fresh run: the EA run's field, codes and members
             ea_field, field, codes, info = load_generative_ea(density.get("ea_ckpt"))

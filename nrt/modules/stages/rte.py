@@ -35,9 +35,8 @@ from nrt.modules.renderers.volume import DirectSource, transmitted_background, v
 from nrt.modules.stages.components import (
     as_factory,
     factory_config,
-    factory_configs,
     legacy_config,
-    objective_factories,
+    objective_components,
 )
 from nrt.modules.stages.ea import load_ea_field
 from nrt.modules.stages.stage import Stage, check_learning_rates
@@ -270,13 +269,12 @@ class RTEModule(RadiativeTransferStage):
                  property_resolution: int | None = None,
                  objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
         super().__init__(effects, density, sun, property_resolution)
-        make_objectives = objective_factories(objectives, PAPER_OBJECTIVES)
+        make_objectives, objectives = objective_components(objectives, PAPER_OBJECTIVES)
         make_light = as_factory(light_field, "light_field",
                                 legacy_config("nrt.modules.fields.light_field.LightField"))
         make_medium = as_factory(medium, "medium", legacy_medium)
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field, medium = factory_config(make_light), factory_config(make_medium)
-        objectives = factory_configs(make_objectives)
         self.save_hyperparameters()
         self.automatic_optimization = False
         self.objectives = build_objectives(weights, make_objectives)

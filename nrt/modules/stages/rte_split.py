@@ -56,9 +56,8 @@ from nrt.modules.renderers.volume import render_view_rays, transmitted_backgroun
 from nrt.modules.stages.components import (
     as_factory,
     factory_config,
-    factory_configs,
     legacy_config,
-    objective_factories,
+    objective_components,
 )
 from nrt.modules.stages.ea import load_ea_field
 from nrt.modules.stages.rte import RadiativeTransferStage
@@ -102,14 +101,13 @@ class SplitRTEModule(RadiativeTransferStage):
                  property_resolution: int | None = None, coupling: dict | None = None,
                  objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
         super().__init__(effects, density, sun, property_resolution)
-        make_objectives = objective_factories(objectives, SPLIT_OBJECTIVES)
+        make_objectives, objectives = objective_components(objectives, SPLIT_OBJECTIVES)
         make_light = as_factory(light_field, "light_field",
                                 legacy_config("nrt.modules.fields.sh_light_field.SHGridLightField"))
         make_medium = as_factory(medium, "medium",
                                  legacy_config("nrt.modules.fields.voxel_medium.VoxelMedium"))
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field, medium = factory_config(make_light), factory_config(make_medium)
-        objectives = factory_configs(make_objectives)
         self.save_hyperparameters()
         self.automatic_optimization = False
         waits = {name: light_warmup for name, make in make_objectives.items()
