@@ -100,6 +100,8 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     ("ea", ("model.density_field.density_activation=relu",),
      "model.density_field.density_activation"),
     ("rte", ("init=none", "+losses.weights.foo=1"), "losses.weights has unknown objectives"),
+    ("rte", ("init=none", "losses.objectives.photo._target_=nrt.losses.photo.photo_loss"),
+     "losses.objectives.photo names photo_loss, which is not an objective"),
 ])
 def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, needle):
     """What the config alone decides (no EA run to start from; stage 2 on photos of

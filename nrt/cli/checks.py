@@ -77,6 +77,40 @@ def check_budget(cfg: DictConfig) -> None:
                        "training (or null for no time limit).")
 
 
+def check_objectives(cfg: DictConfig) -> dict[str, type]:
+    """The unit (a subclass of :class:`~nrt.losses.objective.Objective`) each entry of
+    ``losses.objectives`` names, by name (none for a stage without objectives); an entry
+    without ``_target_``, whose ``_target_`` cannot be imported or is no objective, or
+    without ``_partial_: true`` is refused naming its key, before anything is built.
+    Which objectives have weights the stage checks as it builds them."""
+    from hydra.utils import get_object
+
+    from nrt.losses.objective import objective_class
+
+    entries = OmegaConf.select(cfg, "losses.objectives")
+    if entries is None:
+        return {}
+    classes = {}
+    for name, entry in OmegaConf.to_container(entries, resolve=True).items():
+        key = f"losses.objectives.{name}"
+        target = entry.get("_target_") if isinstance(entry, Mapping) else None
+        if not isinstance(target, str):
+            raise ConfigError(f"{key}={_text(entry)}: an objective is a config with `_target_: "
+                              "<module>.<Class>` (a subclass of nrt.losses.objective."
+                              "Objective) and `_partial_: true` (conf/losses/<stage>.yaml).")
+        try:
+            unit = get_object(target)
+        except Exception as exc:  # noqa: BLE001 - Hydra's import errors vary by cause
+            raise ConfigError(f"{key}._target_={target}: cannot import it ({exc}). It names "
+                              "an objective's class by its module path "
+                              "(nrt.losses.<module>.<Class>).") from None
+        classes[name] = objective_class(unit, key)
+        if entry.get("_partial_") is not True:
+            raise ConfigError(f"{key} lacks `_partial_: true`: the stage builds the objective "
+                              "itself, with its name and weight schedule.")
+    return classes
+
+
 GENERATIVE_STAGES = ("ea", "rte")
 """The stages built in ``mode=generative`` (``conf/mode_stage/generative_<stage>.yaml``)."""
 
@@ -112,14 +146,13 @@ def check_mode(cfg: DictConfig) -> None:
         raise ConfigError(f"mode=generative is built for stage=ea and stage=rte; stage="
                           f"{cfg.stage.name} in generative mode is not built. Run nrt-train "
                           "stage=ea mode=generative scene=family, then stage=rte.")
-    from nrt.modules.stages.rte_split import SPLIT_OBJECTIVES  # the stage's, imported late
-    split = [unit.name for unit in SPLIT_OBJECTIVES]
-    weights = set(OmegaConf.select(cfg, "losses.weights", default={}) or {})
-    if cfg.stage.name == "rte" and not weights <= set(split):
-        raise ConfigError(f"stage=rte mode=generative trains the split formulation (objectives "
-                          f"{split}), but losses.weights names "
-                          f"{sorted(weights)}: the paper's formulation (experiment=rte_paper) "
-                          "is a single-scene formulation. Drop the experiment.")
+    single = [name for name, unit in check_objectives(cfg).items() if not unit.families]
+    if single:
+        raise ConfigError(f"stage={cfg.stage.name} mode=generative takes each objective over "
+                          f"a family's scenes, but losses.objectives.{single[0]} "
+                          f"({cfg.losses.objectives[single[0]]._target_}) takes one scene: the "
+                          "paper's formulation (experiment=rte_paper) is a single-scene "
+                          "formulation. Drop the experiment.")
     environments = OmegaConf.select(cfg, "stage.environments")
     if any(isinstance(e, int) and e != 0 for e in environments or []):
         raise ConfigError(f"stage.environments={list(environments)}: a family trains on its "

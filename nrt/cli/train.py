@@ -20,7 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from nrt.cli.checks import check_arguments, check_budget, check_mode
+from nrt.cli.checks import check_arguments, check_budget, check_mode, check_objectives
 from nrt.cli.common import run_app
 from nrt.errors import NrtError
 from nrt.run_dirs import (
@@ -109,6 +109,7 @@ def train_task(cfg: DictConfig) -> dict:
     # counts no run can use, a missing EA run or resume checkpoint, and the checks of the
     # model and callbacks themselves (e.g. stage 2 on truncated scattering orders).
     check_budget(cfg)
+    check_objectives(cfg)
     check_mode(cfg)
     check_arguments(cfg, HydraConfig.get().runtime.choices)
     ckpt = resume_checkpoint(cfg, run_dir)

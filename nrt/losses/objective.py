@@ -1,15 +1,18 @@
 """Objectives as units: a name, a weight schedule and a loss (threestudio's ``lambda_*``).
 
-A stage holds its objectives by name (:func:`build_objectives`, from ``losses.weights``) and
-each step backpropagates ``weight(step, progress) * loss`` of those whose weight is
-positive; the others are not evaluated (nor their samples drawn) that step. A weight is a
-number or ``[start, end, ramp_steps]`` (linear over the first ``ramp_steps`` steps, then
-constant), and may be off until a share of the run has passed (``starts_at``: the split
-stage's photo objective waits for ``light_warmup``).
+A stage's objectives are components chosen by config: ``losses.objectives`` names each by
+the key it goes by (``photo: {_target_: nrt.losses.photo.PhotoObjective, _partial_: true}``)
+and ``losses.weights`` gives each its weight under the same key. The stage builds them
+(:func:`build_objectives`) and each step backpropagates ``weight(step, progress) * loss``
+of those whose weight is positive; the others are not evaluated (nor their samples drawn)
+that step. A weight is a number or ``[start, end, ramp_steps]`` (linear over the first
+``ramp_steps`` steps, then constant), and may be off until a share of the run has passed
+(``starts_at``: the split stage's objectives of the medium wait for ``light_warmup``).
 
 An objective's :meth:`Objective.loss` reads the stage it serves (its sample counts, the
-known lights, the samplers) and is taken over ``scenes``: the (medium, light) pairs of the
-step, one for a single scene, one per family member in the generative mode.
+known lights, the in-scattering it supplies) and is taken over ``scenes``: the (medium,
+light) pairs of the step, one for a single scene, one per family member in the generative
+mode.
 """
 
 from __future__ import annotations
@@ -59,14 +62,20 @@ class WeightSchedule:
 
 
 class Objective:
-    """One objective of a stage: :attr:`name` (its key in ``losses.weights`` and its
-    metrics ``train/loss_<name>``, ``time/step_<name>_s``), a :class:`WeightSchedule` and
-    :meth:`loss`. Subclasses set ``name`` and implement :meth:`loss`."""
+    """One objective of a stage: :attr:`name` (its key in ``losses.objectives`` and
+    ``losses.weights``, and its metrics ``train/loss_<name>``, ``time/step_<name>_s``), a
+    :class:`WeightSchedule` and :meth:`loss`. Subclasses implement :meth:`loss` and say
+    where they apply (:attr:`families`, :attr:`medium_only`)."""
 
-    name: str = ""
+    families: bool = False
+    """Whether :meth:`loss` takes a family's scenes (the generative stage), not one alone."""
+    medium_only: bool = False
+    """Whether it trains the medium alone: the split stage starts it after the light
+    field's warm-up (``light_warmup``), and forward mode (the medium is the ground truth)
+    leaves it out."""
 
-    def __init__(self, schedule: WeightSchedule):
-        self.schedule = schedule
+    def __init__(self, name: str, schedule: WeightSchedule):
+        self.name, self.schedule = name, schedule
 
     def weight(self, step: int, progress: float) -> float:
         """The weight at ``step`` and run progress ``progress`` in [0, 1]."""
@@ -80,21 +89,43 @@ class Objective:
         return f"{type(self).__name__}({self.name!r}, {self.schedule!r})"
 
 
-def build_objectives(weights: Mapping[str, Any], units: Sequence[type[Objective]],
+def objective_class(target: Any, key: str) -> type[Objective]:
+    """``target`` (what a ``_target_`` names, or a factory of it) as the
+    :class:`Objective` subclass it is; anything else is refused naming ``key``
+    (``losses.objectives.photo``)."""
+    unit = getattr(target, "func", target)  # a functools.partial: its class
+    if isinstance(unit, type) and issubclass(unit, Objective):
+        return unit
+    what = getattr(unit, "__qualname__", type(unit).__name__)
+    raise ConfigError(f"{key} names {what}, which is not an objective: an entry of "
+                      "losses.objectives has `_target_: <module>.<Class>` of a subclass of "
+                      "nrt.losses.objective.Objective and `_partial_: true` (the stage "
+                      "builds it with its weight).")
+
+
+def build_objectives(weights: Mapping[str, Any],
+                     factories: Mapping[str, Callable[..., Objective]],
                      starts_at: Mapping[str, float] | None = None, hint: str = ""
                      ) -> dict[str, Objective]:
-    """The objectives ``weights`` (name -> weight or ramp) names among ``units``, in the
-    order of ``weights`` (the order the stage draws their samples in); ``starts_at`` holds
-    warm-ups by name. A name that is no unit's is refused, listing the names and
-    ``hint``."""
-    known = {unit.name: unit for unit in units}
-    unknown = sorted(set(weights) - set(known))
+    """The objectives ``factories`` (name -> a unit's factory, from ``losses.objectives``)
+    builds, each with the weight ``weights`` gives its name, in the order of ``weights``
+    (the order the stage draws their samples in); ``starts_at`` holds warm-ups by name. A
+    weight for no objective, an objective without a weight and a factory of anything but
+    an :class:`Objective` are refused naming the key (``hint`` ends the first message)."""
+    unknown = sorted(set(weights) - set(factories))
     if unknown:
         raise ConfigError(f"losses.weights has unknown objectives {unknown}; the objectives "
-                          f"are {list(known)}{hint}.")
+                          f"are {list(factories)} (losses.objectives){hint}.")
+    unweighted = [name for name in factories if name not in weights]
+    if unweighted:
+        raise ConfigError(f"losses.objectives.{unweighted[0]} has no weight: give it one "
+                          f"(losses.weights.{unweighted[0]}=<weight>; 0 keeps it off), or "
+                          f"remove it (~losses.objectives.{unweighted[0]}).")
+    for name, factory in factories.items():
+        objective_class(factory, f"losses.objectives.{name}")
     starts_at = starts_at or {}
-    return {name: known[name](WeightSchedule(value, starts_at.get(name, 0.0),
-                                             f"losses.weights.{name}"))
+    return {name: factories[name](name=name, schedule=WeightSchedule(
+                value, starts_at.get(name, 0.0), f"losses.weights.{name}"))
             for name, value in weights.items()}
 
 

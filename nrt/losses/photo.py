@@ -1,4 +1,6 @@
-"""Photo objective of split stage 2: rendered pixels against the photographs.
+"""Photo objective of split stage 2: the camera rays rendered by the VRE (the stage's
+in-scattering: the sky's and the known lights' first scattering and the scattered light's)
+against the photographs.
 
 Compared after ``log1p(x / radiance_scale)``, as stage 1 and the evaluation compare images
 (a linear MSE lets the few brightest pixels, the sun's glow through thin medium, decide
@@ -13,6 +15,7 @@ import torch
 
 from nrt.errors import ConfigError
 from nrt.losses.objective import Objective, Scenes, member_mean
+from nrt.modules.renderers.volume import render_view_rays
 
 TONEMAPS = ("log", "linear")
 
@@ -38,16 +41,30 @@ def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor
 
 
 class PhotoObjective(Objective):
-    """``photo``: the first ``samples.photo_rays`` rays of the batch through
-    ``stage.photo_objective(medium, light, rays)``; over a family, each ray through its
-    ``member``'s scene, the mean over all rays."""
+    """``photo``: the first ``samples.photo_rays`` rays of the batch rendered with
+    ``vre_samples`` jittered strata through the medium, with the stage's in-scattering
+    (``stage.inscatter``) of the light as the stage lets the photos read it
+    (``stage.photo_light``: through the adjoint's leaf when that is on), against their
+    pixels (:func:`photo_loss`, ``photo_tonemap``). Over a family, each ray through its
+    ``member``'s scene, the mean over all rays. It trains the medium only."""
 
-    name = "photo"
+    families = True
+    medium_only = True
 
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
         n = int(stage.hparams.samples["photo_rays"])
         rays = {key: batch[key][:n] for key in RAY_KEYS}
         if len(scenes) == 1:
-            return stage.photo_objective(*scenes[0], rays)
-        return member_mean(batch["member"][:n].cpu(), lambda k, mask: stage.photo_objective(
-            *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))
+            return self.scene_loss(stage, *scenes[0], rays)
+        return member_mean(batch["member"][:n].cpu(), lambda k, mask: self.scene_loss(
+            stage, *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))
+
+    @staticmethod
+    def scene_loss(stage, medium, light, rays: dict) -> torch.Tensor:
+        """The loss of the camera ``rays`` (``origins``, ``dirs``, ``background``, ``rgb``)
+        through ``medium`` lit by ``light``."""
+        read, coefficients_grad = stage.photo_light(light)
+        source = stage.inscatter(medium, read, coefficients_grad)
+        pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
+                                int(stage.hparams.samples["vre_samples"]), source)
+        return photo_loss(pred, rays["rgb"], light.radiance_scale, stage.hparams.photo_tonemap)

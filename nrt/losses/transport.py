@@ -20,9 +20,11 @@ from __future__ import annotations
 import torch
 
 from nrt.losses.objective import Objective, Scenes, member_mean
+from nrt.losses.samplers import uniform_box_points
 from nrt.modules.fields.sh_light_field import SHGridLightField
+from nrt.modules.fields.voxel_medium import detached
 from nrt.physics.compositing import alpha_composite
-from nrt.physics.phase import sample_phase
+from nrt.physics.phase import sample_phase, sample_uniform_sphere
 from nrt.physics.volume import march_to_exit
 
 
@@ -70,16 +72,31 @@ def unrolled_inscatter(light: SHGridLightField, medium, x: torch.Tensor, w: torc
     return est - est.detach()
 
 
-class TransportObjective(Objective):
-    """``transport``: ``stage.transport_objective(medium, light, n)`` at
-    ``samples.transport_points`` points; over a family, point i belongs to member i mod K
-    (split evenly), the mean over all points."""
+def uniform_samples(n: int, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n`` points (n, 3) uniform in the box ``bbox`` and as many travel directions (n, 3)
+    uniform on the sphere, drawn in that order."""
+    points = uniform_box_points(n, bbox)
+    return points, sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
 
-    name = "transport"
+
+class TransportObjective(Objective):
+    """``transport``: :func:`transport_loss` of the light in the medium (without gradient
+    to it) at ``samples.transport_points`` uniform points and travel directions, with
+    ``transport_samples`` strata per march; over a family, point i belongs to member
+    i mod K (split evenly), the mean over all points."""
+
+    families = True
 
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
         n = int(stage.hparams.samples["transport_points"])
+        strata = int(stage.hparams.samples["transport_samples"])
         if len(scenes) == 1:
-            return stage.transport_objective(*scenes[0], n)
+            return self.scene_loss(*scenes[0], n, strata)
         return member_mean(torch.arange(n) % len(scenes), lambda k, mask:
-                           stage.transport_objective(*scenes[k], int(mask.sum())))
+                           self.scene_loss(*scenes[k], int(mask.sum()), strata))
+
+    @staticmethod
+    def scene_loss(medium, light: SHGridLightField, n: int, n_samples: int) -> torch.Tensor:
+        """The loss of ``light`` in ``medium`` at ``n`` fresh samples."""
+        points, dirs = uniform_samples(n, light.bbox)
+        return transport_loss(light, detached(medium), points, dirs, n_samples)

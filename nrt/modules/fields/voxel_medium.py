@@ -68,6 +68,18 @@ class Voxels:
                                 extinction=sigma_t if c == 1 else None)
 
 
+def extinction(medium) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``x -> sigma_t`` of a medium: one lookup for :class:`Voxels`, the properties
+    otherwise."""
+    return medium.sigma_t if isinstance(medium, Voxels) else (lambda x: medium(x).sigma_t)
+
+
+def detached(medium):
+    """The medium without gradient: :class:`Voxels` detached; any other (a ground truth)
+    as it is."""
+    return medium.detached() if isinstance(medium, Voxels) else medium
+
+
 @torch.no_grad()
 def bake(density: Callable[[torch.Tensor], torch.Tensor], resolution: int,
          bbox: torch.Tensor) -> torch.Tensor:

@@ -47,10 +47,11 @@ from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import ConfigError, DatasetError
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
-from nrt.modules.stages.components import as_factory, factory_config
+from nrt.modules.fields.voxel_medium import detached
+from nrt.modules.stages.components import as_factory, factory_config, objective_components
 from nrt.modules.stages.ea import build_density_field, density_field_factory
 from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
-from nrt.modules.stages.rte_split import SplitRTEModule, detached
+from nrt.modules.stages.rte_split import SPLIT_OBJECTIVES, SplitRTEModule
 from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.volume import at_cell_centres
 
@@ -89,6 +90,8 @@ class GenerativeRTEModule(SplitRTEModule):
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field = factory_config(as_factory(light_field, "light_field"))
         medium = factory_config(as_factory(medium, "medium"))
+        _, kwargs["objectives"] = objective_components(kwargs.get("objectives"),
+                                                       SPLIT_OBJECTIVES)
         super().__init__(light_field=light_field, medium=medium, **kwargs)
         if ea_field is None:  # a fresh run: the EA run's field, codes and members
             ea_field, field, codes, info = load_generative_ea(density.get("ea_ckpt"))
@@ -186,7 +189,8 @@ class GenerativeRTEModule(SplitRTEModule):
         opt.zero_grad(set_to_none=True)
         total = self.backward_objectives(batch, scenes)
         prior = self.latent_prior()
-        if "photo" in self.active_weights():  # the codes' regulariser, with their data term
+        if any(self.objectives[name].medium_only for name in self.active_weights()):
+            # the codes' regulariser, with their data term (the photos)
             self.manual_backward(prior)
             total = total + prior.detach()
         self.log("train/latent_prior", prior.detach())

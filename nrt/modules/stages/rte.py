@@ -2,10 +2,11 @@
 
 Trains the light field ``L_theta`` and the medium ``M_phi`` (modulating the stage-1 EA
 density) on ``L = w_rte L_RTE + w_bc L_BC + w_obs L_obs + w_vre L_VRE``, the objectives
-:data:`PAPER_OBJECTIVES` (units of :mod:`nrt.losses.objective`, weights from
-``losses.weights``). Only objectives with a positive weight are evaluated, and only the
-terms the scene's effects declare (no g without HG, grey coefficients without chromatic
-extinction, explicit first scattering only of the emitters and sun the scene has). Each
+``losses.objectives`` chooses (units of :mod:`nrt.losses.objective`, weights from
+``losses.weights``; conf/losses/rte_paper.yaml). Only objectives with a positive weight
+are evaluated, and only the terms the scene's effects declare (no g without HG, grey
+coefficients without chromatic extinction, explicit first scattering only of the emitters
+and sun the scene has). Each
 objective is backpropagated on its own, so the time per step splits by objective
 (``time/step_<name>_s``); gradients accumulate and one Adam step follows.
 
@@ -17,25 +18,26 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import NrtError
-from nrt.losses.boundary import BoundaryObjective
 from nrt.losses.objective import Objective, Scenes, build_objectives
-from nrt.losses.observation import ObservationObjective
-from nrt.losses.rte import RTEObjective
 from nrt.losses.samplers import DensityPointSampler, EnvironmentDirectionSampler
-from nrt.losses.vre import VREObjective
 from nrt.metrics import psnr
 from nrt.modules.fields.medium import GroundTruthMedium, Medium
 from nrt.modules.fields.protocols import ModulatedMedium, RadianceField, build
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import DirectSource, transmitted_background, vre_render
-from nrt.modules.stages.components import as_factory, factory_config, legacy_config
+from nrt.modules.stages.components import (
+    as_factory,
+    factory_config,
+    legacy_config,
+    objective_components,
+)
 from nrt.modules.stages.ea import load_ea_field
 from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.direct_light import DirectLights, direct_inscatter, split_sun
@@ -45,9 +47,12 @@ from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
 
-PAPER_OBJECTIVES: Sequence[type[Objective]] = (RTEObjective, BoundaryObjective,
-                                               ObservationObjective, VREObjective)
-"""The paper formulation's objectives, by their ``losses.weights`` names rte, bc, obs, vre."""
+PAPER_OBJECTIVES = {"rte": "nrt.losses.rte.RTEObjective",
+                    "bc": "nrt.losses.boundary.BoundaryObjective",
+                    "obs": "nrt.losses.observation.ObservationObjective",
+                    "vre": "nrt.losses.vre.VREObjective"}
+"""The paper formulation's objectives by name (conf/losses/rte_paper.yaml): those of a
+checkpoint written before ``losses.objectives`` chose them."""
 DENSITY_SOURCES = ("ea", "none", "ground_truth")
 
 
@@ -261,8 +266,10 @@ class RTEModule(RadiativeTransferStage):
                  lr_final_factor: float = 0.1, medium_warmup: float = 0.0,
                  sun: dict | None = None, grad_clip: float | None = None,
                  eval_chunk: int = 4096,
-                 property_resolution: int | None = None):
+                 property_resolution: int | None = None,
+                 objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
         super().__init__(effects, density, sun, property_resolution)
+        make_objectives, objectives = objective_components(objectives, PAPER_OBJECTIVES)
         make_light = as_factory(light_field, "light_field",
                                 legacy_config("nrt.modules.fields.light_field.LightField"))
         make_medium = as_factory(medium, "medium", legacy_medium)
@@ -270,7 +277,7 @@ class RTEModule(RadiativeTransferStage):
         light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
         self.automatic_optimization = False
-        self.objectives = build_objectives(weights, PAPER_OBJECTIVES)
+        self.objectives = build_objectives(weights, make_objectives)
         check_learning_rates(lr, "model.lr", ("light", "medium")
                              + (("density",) if density.get("train") else ()))
         self.light: RadianceField = build(make_light, RadianceField, "light_field", FITS)

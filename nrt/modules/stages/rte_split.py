@@ -12,7 +12,7 @@ scattered at least once, and only the second is learned:
   :class:`~nrt.modules.fields.sh_light_field.SHGridLightField`, SH coefficients on a grid, zero on
   inflow and smooth in direction, whose in-scattering is exact for HG.
 
-Two objectives (:data:`SPLIT_OBJECTIVES`, weights from ``losses.weights``):
+Two objectives, chosen by ``losses.objectives`` (their weights in ``losses.weights``):
 
 - ``photo``: the training photos against the VRE of the camera rays with that
   in-scattering (:mod:`~nrt.losses.photo`); it trains the medium. The scattered light's
@@ -37,33 +37,40 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping
 
 import torch
 
 from nrt.errors import ConfigError
 from nrt.losses.adjoint import adjoint_loss, medium_sensitivity
-from nrt.losses.objective import Objective, build_objectives
-from nrt.losses.photo import PhotoObjective, check_tonemap, photo_loss
-from nrt.losses.transport import TransportObjective, transport_loss, unrolled_inscatter
+from nrt.losses.objective import Objective, build_objectives, objective_class
+from nrt.losses.photo import check_tonemap
+from nrt.losses.samplers import uniform_box_points
+from nrt.losses.transport import uniform_samples, unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
 from nrt.modules.fields.sh_light_field import SHGrid, SHGridLightField
-from nrt.modules.fields.voxel_medium import Voxels
+from nrt.modules.fields.voxel_medium import detached, extinction
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import render_view_rays, transmitted_background
-from nrt.modules.stages.components import as_factory, factory_config, legacy_config
+from nrt.modules.stages.components import (
+    as_factory,
+    factory_config,
+    legacy_config,
+    objective_components,
+)
 from nrt.modules.stages.ea import load_ea_field
 from nrt.modules.stages.rte import RadiativeTransferStage
 from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.direct_light import direct_inscatter
-from nrt.physics.phase import sample_uniform_sphere
 from nrt.physics.sky_light import sky_inscatter, uncollided_sh
 
 log = logging.getLogger(__name__)
 
-SPLIT_OBJECTIVES: Sequence[type[Objective]] = (PhotoObjective, TransportObjective)
-"""The split formulation's objectives (``losses.weights`` names photo, transport)."""
+SPLIT_OBJECTIVES = {"photo": "nrt.losses.photo.PhotoObjective",
+                    "transport": "nrt.losses.transport.TransportObjective"}
+"""The split formulation's objectives by name (conf/losses/rte.yaml): those of a checkpoint
+written before ``losses.objectives`` chose them."""
 
 FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
         "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
@@ -74,16 +81,6 @@ COUPLING = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
             "adjoint_blend": 0.5}
 """``model.coupling``'s keys and defaults: the photos' gradient through the scattered light
 (off by default; docs/stage2.md, "Coupling")."""
-
-
-def extinction(medium):
-    """``x -> sigma_t`` of a medium: one lookup for voxels, the properties otherwise."""
-    return medium.sigma_t if isinstance(medium, Voxels) else (lambda x: medium(x).sigma_t)
-
-
-def detached(medium):
-    """The medium without gradient (voxels detached; a ground truth has none)."""
-    return medium.detached() if isinstance(medium, Voxels) else medium
 
 
 class SplitRTEModule(RadiativeTransferStage):
@@ -101,8 +98,10 @@ class SplitRTEModule(RadiativeTransferStage):
                  weights: dict, samples: dict, lr: dict, lr_final_factor: float = 0.1,
                  light_warmup: float = 0.05, photo_tonemap: str = "log",
                  sun: dict | None = None, eval_chunk: int = 4096,
-                 property_resolution: int | None = None, coupling: dict | None = None):
+                 property_resolution: int | None = None, coupling: dict | None = None,
+                 objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
         super().__init__(effects, density, sun, property_resolution)
+        make_objectives, objectives = objective_components(objectives, SPLIT_OBJECTIVES)
         make_light = as_factory(light_field, "light_field",
                                 legacy_config("nrt.modules.fields.sh_light_field.SHGridLightField"))
         make_medium = as_factory(medium, "medium",
@@ -111,11 +110,14 @@ class SplitRTEModule(RadiativeTransferStage):
         light_field, medium = factory_config(make_light), factory_config(make_medium)
         self.save_hyperparameters()
         self.automatic_optimization = False
+        waits = {name: light_warmup for name, make in make_objectives.items()
+                 if objective_class(make, f"losses.objectives.{name}").medium_only}
         self.objectives = build_objectives(
-            weights, SPLIT_OBJECTIVES, {"photo": light_warmup},
+            weights, make_objectives, waits,
             " (the paper's four, rte/bc/obs/vre, are experiment=rte_paper)")
-        if not self.learns_medium:  # forward mode: the photos have no medium to teach
-            self.objectives.pop("photo", None)
+        if not self.learns_medium:  # forward mode: no medium to teach
+            self.objectives = {name: unit for name, unit in self.objectives.items()
+                               if not unit.medium_only}
         check_tonemap(photo_tonemap)
         check_learning_rates(lr, "model.lr", ("light", "medium"))
         self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
@@ -227,30 +229,16 @@ class SplitRTEModule(RadiativeTransferStage):
                      self.medium.resolution, self.global_step)
 
     # --------------------------------------------------------------- training
-    def transport_objective(self, medium, light: ScatteredLightField, n: int) -> torch.Tensor:
-        """The transport loss of ``light`` in ``medium`` (no gradient to it) at ``n`` uniform
-        points and directions of travel."""
-        bbox = light.bbox
-        pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
-        dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
-        return transport_loss(light, detached(medium), pts, dirs,
-                              int(self.hparams.samples["transport_samples"]))
-
-    def photo_objective(self, medium, light: ScatteredLightField, rays: dict) -> torch.Tensor:
-        """The photo loss of the camera ``rays`` (``origins``, ``dirs``, ``background``,
-        ``rgb``) rendered through ``medium`` with ``light``'s in-scattering. With the adjoint
-        on, the coefficients are read through a leaf whose gradient is the adjoint's source
-        (:meth:`adjoint_step`)."""
-        if light is self.light and self.adjoint is not None:
-            leaf = light.coefficients.detach().requires_grad_(True)
-            self._photo_coefficients = leaf
-            source = self.inscatter(medium, SHGrid(leaf, light.uncollided, light.degree,
-                                                   light.bbox, light.radiance_scale), True)
-        else:
-            source = self.inscatter(medium, light)
-        pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
-                                int(self.hparams.samples["vre_samples"]), source)
-        return photo_loss(pred, rays["rgb"], light.radiance_scale, self.hparams.photo_tonemap)
+    def photo_light(self, light: ScatteredLightField) -> tuple[ScatteredLightField, bool]:
+        """``light`` as the photo objective reads it, and whether its coefficients take
+        gradient there: as it is, without; with the adjoint on, the stage's own light read
+        through a leaf whose gradient becomes the adjoint's source (:meth:`adjoint_step`)."""
+        if light is not self.light or self.adjoint is None:
+            return light, False
+        leaf = light.coefficients.detach().requires_grad_(True)
+        self._photo_coefficients = leaf
+        return SHGrid(leaf, light.uncollided, light.degree, light.bbox,
+                      light.radiance_scale), True
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
@@ -288,12 +276,11 @@ class SplitRTEModule(RadiativeTransferStage):
         source = SHGrid(self.adjoint_source / q_scale, self.adjoint.uncollided, light.degree,
                         bbox, one)
         n = int(self.hparams.samples["transport_points"])
-        pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
-        dirs = sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
+        pts, dirs = uniform_samples(n, bbox)
         loss = adjoint_loss(adjoint, source, detached(medium), pts, dirs,
                             int(self.hparams.samples["transport_samples"]))
         self.manual_backward(loss)
-        pts = bbox[0] + torch.rand(n, 3, device=bbox.device) * (bbox[1] - bbox[0])
+        pts = uniform_box_points(n, bbox)
         self.manual_backward(medium_sensitivity(adjoint, light.grid(), self.medium.voxels(),
                                                 pts, float(q_scale)))
         self.log("train/loss_adjoint", loss.detach())
