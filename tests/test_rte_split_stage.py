@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import last_value, only_run_dir, read_csv_metrics, run_train, values
+from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
 from test_rte_paper_stage import (
     DIRECT_LIGHT_CASES,
@@ -22,6 +23,7 @@ from test_rte_paper_stage import (
     trains_finite,
 )
 
+from nrt.errors import ConfigError
 from nrt.modules.fields.voxel_medium import VoxelMedium
 from nrt.modules.stages import rte_split
 from nrt.modules.stages.rte_split import SplitRTEModule
@@ -174,3 +176,23 @@ def test_coupling_options_carry_photo_gradients_through_the_scattered_light(tmp_
     assert model.adjoint_source.abs().max() > 0
     assert model.adjoint.coefficients.detach().abs().max() > 0
     assert "adjoint.coefficients" in model.state_dict()
+
+
+def test_oracle_start_bakes_the_true_extinction(tmp_path):
+    """``init=oracle`` (a diagnostic, docs/stage2.md): the medium modulates the dataset's
+    true extinction, its channel mean baked on the density's cells, in place of the EA
+    density; the paper's formulation refuses it."""
+    from nrt.modules.fields.voxel_medium import bake
+    from nrt.physics.volume import sample_grid
+
+    model, dm = build(tmp_path, "init=oracle")
+    fit(model, dm, 1)
+    truth = dm.ground_truth
+    extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
+    bbox = model.medium.bbox
+    want = bake(lambda x: sample_grid(extinction, x, bbox)[..., 0], 8, bbox)
+    torch.testing.assert_close(model.medium.density, want)
+    assert want.max() > 0.5  # the tiny scene's medium, not an empty grid
+    with pytest.raises(InstantiationException, match="init=oracle") as refused:
+        build(tmp_path, "init=oracle", "experiment=rte_paper")
+    assert isinstance(refused.value.__cause__, ConfigError)

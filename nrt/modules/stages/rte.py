@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
-from nrt.errors import NrtError
+from nrt.errors import ConfigError, NrtError
 from nrt.losses.objective import Objective, Scenes, build_objectives
 from nrt.losses.samplers import DensityPointSampler, EnvironmentDirectionSampler
 from nrt.metrics import psnr
@@ -53,7 +53,10 @@ PAPER_OBJECTIVES = {"rte": "nrt.losses.rte.RTEObjective",
                     "vre": "nrt.losses.vre.VREObjective"}
 """The paper formulation's objectives by name (conf/losses/rte_paper.yaml): those of a
 checkpoint written before ``losses.objectives`` chose them."""
-DENSITY_SOURCES = ("ea", "none", "ground_truth")
+DENSITY_SOURCES = ("ea", "none", "ground_truth", "oracle")
+"""Where stage 2's density comes from (``init.source``): an EA run, none, the ground truth
+(forward mode), or the ground truth's extinction in place of the EA density (``oracle``:
+a diagnostic of the split stage, docs/stage2.md)."""
 
 
 def mean_radiance(envmap: EnvironmentMap) -> float:
@@ -269,6 +272,10 @@ class RTEModule(RadiativeTransferStage):
                  property_resolution: int | None = None,
                  objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
         super().__init__(effects, density, sun, property_resolution)
+        if density["source"] == "oracle":
+            raise ConfigError("init=oracle (the true extinction in place of the EA density) is "
+                              "a diagnostic of the split stage 2 (stage=rte), not of "
+                              "experiment=rte_paper; use init=ea or init=none.")
         make_objectives, objectives = objective_components(objectives, PAPER_OBJECTIVES)
         make_light = as_factory(light_field, "light_field",
                                 legacy_config("nrt.modules.fields.light_field.LightField"))

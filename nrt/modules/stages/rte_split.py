@@ -41,7 +41,7 @@ from collections.abc import Callable, Mapping
 
 import torch
 
-from nrt.errors import ConfigError
+from nrt.errors import ConfigError, DatasetError
 from nrt.losses.adjoint import adjoint_loss, medium_sensitivity
 from nrt.losses.objective import Objective, build_objectives, objective_class
 from nrt.losses.photo import check_tonemap
@@ -64,6 +64,7 @@ from nrt.modules.stages.rte import RadiativeTransferStage
 from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.sky_light import sky_inscatter, uncollided_sh
+from nrt.physics.volume import sample_grid
 
 log = logging.getLogger(__name__)
 
@@ -144,13 +145,24 @@ class SplitRTEModule(RadiativeTransferStage):
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
         super().setup(stage)
-        if self.learns_medium and self.hparams.density["source"] == "ea" \
+        if self.learns_medium and self.hparams.density["source"] in ("ea", "oracle") \
                 and not self._baked and self.datamodule() is not None:
             self.bake_density()  # a resumed run loads the same values
             self._baked = True
 
     def bake_density(self) -> None:
-        """Bake the EA run's density into the medium."""
+        """Bake the EA run's density into the medium, or with ``init=oracle`` the dataset's
+        true extinction (its channel mean): where stage 2 goes from the truth."""
+        if self.hparams.density["source"] == "oracle":
+            truth = self.datamodule().ground_truth
+            if truth is None:
+                raise DatasetError("init=oracle needs the dataset's ground_truth.npz (the true "
+                                   "extinction it starts from); this dataset has none.")
+            extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
+            bbox = self.medium.bbox
+            self.medium.set_density(lambda x: sample_grid(extinction.to(x.device), x, bbox)[..., 0])
+            log.info("Stage 2 modulates the TRUE extinction (init=oracle, a diagnostic)")
+            return
         ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
         self.medium.set_density(ea.density)
         log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
