@@ -158,9 +158,10 @@ class SplitRTEModule(RadiativeTransferStage):
             if truth is None:
                 raise DatasetError("init=oracle needs the dataset's ground_truth.npz (the true "
                                    "extinction it starts from); this dataset has none.")
-            extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
+            true_extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
             bbox = self.medium.bbox
-            self.medium.set_density(lambda x: sample_grid(extinction.to(x.device), x, bbox)[..., 0])
+            self.medium.set_density(
+                lambda x: sample_grid(true_extinction.to(x.device), x, bbox)[..., 0])
             log.info("Stage 2 modulates the TRUE extinction (init=oracle, a diagnostic)")
             return
         ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
