@@ -288,3 +288,19 @@ def test_a_density_field_without_density_is_refused_naming_its_group():
     with pytest.raises(ConfigError, match=r"model/density_field: Identity lacks \['bbox', "
                                           r"'density'\]"):
         build("stage=ea", "model.density_field._target_=torch.nn.Identity")
+
+
+@pytest.mark.parametrize(("overrides", "stages", "trained"), [
+    ((), ("ea", "rte", "dpt"), [0, 1]),  # the default scene: two skies train, sky2 is novel
+    (("preset=tiny",), ("ea", "rte", "dpt"), [0]),  # the tests' one sky
+    (("experiment=rte_paper",), ("rte",), [0]),  # the paper's light field: one sky
+    ((), ("forward",), [0]),  # the solver check under the first sky
+])
+def test_stages_train_on_the_scene_s_training_skies(overrides, stages, trained):
+    """``scene.environments.train`` decides the photos every stage trains on (stage 1, stage
+    2 and the baseline alike); the default scene renders a third sky that none trains on."""
+    for stage in stages:
+        cfg = compose_config("train", [f"stage={stage}", *overrides])
+        assert list(cfg.data.environments) == trained, stage
+    default = compose_config("train", [])
+    assert list(default.scene.environments.sky_seeds) == [0, 1, 2]

@@ -384,3 +384,11 @@ def test_dataset_from_another_tool_loads(tiny_dataset, tmp_path):
     torch.testing.assert_close(ds.c2w, ref.c2w)
     torch.testing.assert_close(ds.bbox, ref.bbox)
     torch.testing.assert_close(ds.envmaps[0].radiance, ref.envmaps[0].radiance)
+
+
+def test_training_on_a_sky_the_dataset_lacks_names_the_key_to_set(tiny_dataset):
+    """A stage told to train on an environment the dataset does not have stops with the
+    keys that choose them and the positions it does have."""
+    data = load_dataset(tiny_dataset, "train")
+    with pytest.raises(DatasetError, match=r"scene\.environments\.train.*positions 0\.\.0"):
+        data.select_environments([0, 1])

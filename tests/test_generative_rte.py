@@ -37,7 +37,7 @@ from nrt.cli.train import resolve_ea_checkpoint
 from nrt.data.family import ensure_family
 from nrt.data.grids import load_property_grids
 from nrt.errors import ConfigError, NrtError
-from nrt.losses.objective import member_mean
+from nrt.losses.objective import scene_mean
 from nrt.metrics import property_mse
 from nrt.modules.stages.ea import EAModule
 from nrt.modules.stages.generative_ea import load_generative_ea
@@ -151,10 +151,10 @@ def test_stage_composes_the_generative_components():
     assert ea.model._target_.endswith("GenerativeEAModule") and ea.model.latent_dim == 4
 
 
-def test_member_mean_is_the_mean_over_all_items():
+def test_scene_mean_is_the_mean_over_all_items():
     losses = torch.rand(10)
     members = torch.tensor([0, 2, 2, 1, 0, 2, 1, 1, 1, 0])
-    total = member_mean(members, lambda k, mask: losses[mask].mean())
+    total = scene_mean(members, lambda k, mask: losses[mask].mean())
     assert float(total) == pytest.approx(float(losses.mean()), rel=1e-6)
 
 

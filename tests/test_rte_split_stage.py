@@ -23,7 +23,7 @@ from test_rte_paper_stage import (
     trains_finite,
 )
 
-from nrt.errors import ConfigError
+from nrt.errors import ConfigError, DatasetError
 from nrt.modules.fields.voxel_medium import VoxelMedium
 from nrt.modules.stages import rte_split
 from nrt.modules.stages.rte_split import SplitRTEModule
@@ -196,3 +196,44 @@ def test_oracle_start_bakes_the_true_extinction(tmp_path):
     with pytest.raises(InstantiationException, match="init=oracle") as refused:
         build(tmp_path, "init=oracle", "experiment=rte_paper")
     assert isinstance(refused.value.__cause__, ConfigError)
+
+
+def test_several_environments_train_a_light_field_each(tmp_path):
+    """``stage.environments=[0,1]`` on a scene under two skies: the medium is shared and each
+    sky has its own light field, scaled by that sky's mean radiance and holding that sky's
+    uncollided light; each ray and each held-out view goes through its own sky's light and
+    known lights (suns); a checkpoint rebuilds both fields. A stage that learns one
+    environment's light (the paper's formulation) refuses two."""
+    from nrt.modules.stages.rte import mean_radiance
+
+    two_skies = ("scene.environments.sky_seeds=[0,1]", "stage.environments=[0,1]")
+    model, dm = build(tmp_path, *two_skies, "budget.rte.light_warmup=0.2")
+    trainer = fit(model, dm, 10)
+    maps = dm.training_environments()
+    assert list(maps) == [0, 1] and len(model.env_lights) == len(model.illuminations) == 2
+    for light, sky, env in zip(model.env_lights, model.illuminations, maps.values(),
+                               strict=True):
+        assert model.illumination_of(light) is sky
+        assert light.radiance_scale.item() == pytest.approx(mean_radiance(env), rel=1e-6)
+        assert light.coefficients.abs().max() > 0  # trained by the transport objective
+    first, second = model.env_lights
+    assert not torch.allclose(first.uncollided, second.uncollided)  # two different skies
+    # the suns differ too: each sky's first scattering comes from its own sun
+    assert not torch.allclose(model.illuminations[0].lights.sun_directions,
+                              model.illuminations[1].lights.sun_directions)
+    assert model.scenes_of(torch.tensor([1, 0, 0, 1])).tolist() == [1, 0, 0, 1]
+    view = next(b for b in dm.val_dataloader() if b["env"] == 1)
+    torch.manual_seed(0)
+    seen = model.predict_view(view)
+    torch.manual_seed(0)
+    own = model.render_pixels(view["origins"], view["dirs"], view["background"],
+                              model.transport_medium(), second)
+    torch.testing.assert_close(seen["vre"], own["vre"])
+    path = tmp_path / "two_skies.ckpt"
+    trainer.save_checkpoint(path)
+    loaded = SplitRTEModule.load_from_checkpoint(path)
+    assert len(loaded.env_lights) == 2
+    torch.testing.assert_close(loaded.more_lights[0].coefficients, second.coefficients)
+    paper, paper_dm = build(tmp_path, *two_skies, "experiment=rte_paper")
+    with pytest.raises(DatasetError, match="one environment"):
+        fit(paper, paper_dm, 1)

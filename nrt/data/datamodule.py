@@ -3,8 +3,9 @@ held-out images for validation. Rays are made on the fly from the dataset tensor
 (no per-epoch copies); every batch carries the known background ``E(v)`` of its rays.
 
 A batch is a dict of ``origins``, ``dirs`` (unit view directions v), ``rgb`` (pixel
-radiance) and ``background`` (``E(v)`` of the ray's environment), each (B, 3);
-validation batches add ``view`` (index) and ``shape`` (H, W). :class:`RayDataModule`
+radiance) and ``background`` (``E(v)`` of the ray's environment), each (B, 3), and ``env`` (B,), the
+position of each ray's environment in the dataset's; validation batches add ``view``
+(index) and ``shape`` (H, W), and their ``env`` is one int. :class:`RayDataModule`
 reads one dataset; :class:`FamilyRayDataModule` the members of a scene family
 (``mode=generative``), whose batches add ``member`` (B,) (training: each ray's member;
 validation: the view's member, and ``view`` counts within it).
@@ -61,7 +62,7 @@ class RandomRays(IterableDataset):
                                col + jitter[:, 0], row + jitter[:, 1])
             env = self.data.env_index[img]
             batch = {"origins": o, "dirs": d, "rgb": self.data.images[img, row, col],
-                     "background": environment_radiance(self.data, env, d)}
+                     "background": environment_radiance(self.data, env, d), "env": env}
             if self.members is not None:
                 batch["member"] = self.members[img]
             yield batch
@@ -101,7 +102,7 @@ class HeldOutImages(IterableDataset):
             d = d.reshape(-1, 3)
             batch = {"origins": o.reshape(-1, 3), "dirs": d, "rgb": rgb.reshape(-1, 3),
                      "background": environment_radiance(self.data, env, d),
-                     "view": view, "shape": (h, w)}
+                     "view": view, "shape": (h, w), "env": int(self.data.env_index[i])}
             if member is not None:
                 batch["member"] = member
             yield batch
@@ -131,17 +132,24 @@ class RayDataModule(L.LightningDataModule):
                 self.train_data = self.train_data.select_environments(list(self.environments))
                 self.val_data = self.val_data.select_environments(list(self.environments))
 
+    def training_environments(self) -> dict[int, EnvironmentMap]:
+        """The environments lighting the selected training frames: their positions in the
+        dataset's environments (a ray batch's ``env``) -> map, in that order."""
+        self.setup()
+        used = sorted(self.train_data.env_index.unique().tolist())
+        return {i: self.train_data.envmaps[i] for i in used}
+
     @property
     def environment(self) -> EnvironmentMap:
-        """The one environment lighting the selected frames (stage 2 learns one light field)."""
-        self.setup()
-        used = self.train_data.env_index.unique().tolist()
-        if len(used) != 1:
-            names = [self.train_data.env_names[i] for i in used]
+        """The one environment lighting the selected frames (a stage that learns one light
+        field, or renders under one sky)."""
+        maps = self.training_environments()
+        if len(maps) != 1:
+            names = [self.train_data.env_names[i] for i in maps]
             raise DatasetError(f"Dataset '{self.dataset_dir}': this stage learns the light field "
                                f"of one environment, but the training frames use {names}; "
                                "choose one with data.environments=[<name or position>].")
-        return self.train_data.envmaps[used[0]]
+        return next(iter(maps.values()))
 
     @property
     def bbox(self) -> torch.Tensor:
@@ -258,6 +266,11 @@ class FamilyRayDataModule(RayDataModule):
                                    "a family shares one training sky. Render the family again "
                                    "(`nrt-data scene=family`).")
         return first
+
+    def training_environments(self) -> dict[int, EnvironmentMap]:
+        """The shared training environment alone (:attr:`environment`), under its first
+        member's position."""
+        return {int(self.train_data.env_index[0]): self.environment}
 
     @property
     def num_members(self) -> int:

@@ -67,9 +67,11 @@ class SceneDataset:
                 keep.append(self.env_names.index(str(item)))
             else:
                 raise DatasetError(
-                    f"Dataset '{self.root}': data.environments names '{item}', but the dataset "
-                    f"has environments {self.env_names} (give names or positions 0.."
-                    f"{len(self.env_names) - 1}, or null for all).")
+                    f"Dataset '{self.root}': the stage trains on environment '{item}' "
+                    f"(scene.environments.train, or stage.environments), but the dataset has "
+                    f"environments {self.env_names}: give names or positions 0.."
+                    f"{len(self.env_names) - 1}, e.g. scene.environments.train=[0], or null "
+                    "for all.")
         mask = torch.isin(self.env_index, torch.tensor(keep))
         return replace(self, images=self.images[mask], c2w=self.c2w[mask],
                        env_index=self.env_index[mask])

@@ -20,12 +20,12 @@ def boundary_loss(light: LightField, points: torch.Tensor, dirs: torch.Tensor,
 class BoundaryObjective(Objective):
     """``bc``: the inflow condition at ``samples.boundary_points`` points on the box faces,
     ``env_fraction`` of their directions drawn like the sun-less environment
-    (``stage.env_sampler``), against ``stage.env_rest``."""
+    (``stage.sky.sampler``), against the sun-less sky ``stage.sky.rest``."""
 
     name = "bc"
 
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
         [(_, light)], s = scenes, stage.hparams.samples
-        pts, w = boundary_samples(int(s["boundary_points"]), light.bbox, stage.env_sampler,
+        pts, w = boundary_samples(int(s["boundary_points"]), light.bbox, stage.sky.sampler,
                                   float(s["env_fraction"]))
-        return boundary_loss(light, pts, w, stage.env_rest.lookup(-w).to(pts.dtype))
+        return boundary_loss(light, pts, w, stage.sky.rest.lookup(-w).to(pts.dtype))

@@ -11,8 +11,10 @@ that step. A weight is a number or ``[start, end, ramp_steps]`` (linear over the
 
 An objective's :meth:`Objective.loss` reads the stage it serves (its sample counts, the
 known lights, the in-scattering it supplies) and is taken over ``scenes``: the (medium,
-light) pairs of the step, one for a single scene, one per family member in the generative
-mode.
+light) pairs of the step: one for a single scene under one sky; one per family member in
+the generative mode; one per training environment when the split stage trains on several
+(one medium, a light field each). With more than one, the batch's ``scene`` (B,) says
+which each ray belongs to.
 """
 
 from __future__ import annotations
@@ -129,13 +131,13 @@ def build_objectives(weights: Mapping[str, Any],
             for name, value in weights.items()}
 
 
-def member_mean(members: torch.Tensor,
+def scene_mean(scenes: torch.Tensor,
                 loss_of: Callable[[int, torch.Tensor], torch.Tensor]) -> torch.Tensor:
-    """The mean over items of a loss computed member by member: ``sum_k (n_k / n)
-    loss_of(k, mask_k)``, with ``members`` (n,) each item's member and ``loss_of`` a mean
-    over the items of ``mask_k``."""
+    """The mean over items of a loss computed scene by scene: ``sum_k (n_k / n)
+    loss_of(k, mask_k)``, with ``scenes`` (n,) each item's scene (a position in the step's
+    ``Scenes``) and ``loss_of`` a mean over the items of ``mask_k``."""
     total = torch.zeros(())
-    for k in members.unique().tolist():
-        mask = members == k
+    for k in scenes.unique().tolist():
+        mask = scenes == k
         total = total + mask.float().mean() * loss_of(k, mask)
     return total

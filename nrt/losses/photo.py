@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 
 from nrt.errors import ConfigError
-from nrt.losses.objective import Objective, Scenes, member_mean
+from nrt.losses.objective import Objective, Scenes, scene_mean
 from nrt.modules.renderers.volume import render_view_rays
 
 TONEMAPS = ("log", "linear")
@@ -45,8 +45,9 @@ class PhotoObjective(Objective):
     ``vre_samples`` jittered strata through the medium, with the stage's in-scattering
     (``stage.inscatter``) of the light as the stage lets the photos read it
     (``stage.photo_light``: through the adjoint's leaf when that is on), against their
-    pixels (:func:`photo_loss`, ``photo_tonemap``). Over a family, each ray through its
-    ``member``'s scene, the mean over all rays. It trains the medium only."""
+    pixels (:func:`photo_loss`, ``photo_tonemap``). Over several scenes (a family's members,
+    or the training environments), each ray through its ``scene``'s, the mean over all
+    rays. It trains the medium only."""
 
     families = True
     medium_only = True
@@ -56,7 +57,7 @@ class PhotoObjective(Objective):
         rays = {key: batch[key][:n] for key in RAY_KEYS}
         if len(scenes) == 1:
             return self.scene_loss(stage, *scenes[0], rays)
-        return member_mean(batch["member"][:n].cpu(), lambda k, mask: self.scene_loss(
+        return scene_mean(batch["scene"][:n].cpu(), lambda k, mask: self.scene_loss(
             stage, *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))
 
     @staticmethod

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes, member_mean
+from nrt.losses.objective import Objective, Scenes, scene_mean
 from nrt.losses.samplers import uniform_box_points
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.modules.fields.voxel_medium import detached
@@ -82,8 +82,9 @@ def uniform_samples(n: int, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 class TransportObjective(Objective):
     """``transport``: :func:`transport_loss` of the light in the medium (without gradient
     to it) at ``samples.transport_points`` uniform points and travel directions, with
-    ``transport_samples`` strata per march; over a family, point i belongs to member
-    i mod K (split evenly), the mean over all points."""
+    ``transport_samples`` strata per march; over K scenes (a family's members, or the
+    training environments' light fields), point i belongs to scene i mod K (split evenly),
+    the mean over all points."""
 
     families = True
 
@@ -92,7 +93,7 @@ class TransportObjective(Objective):
         strata = int(stage.hparams.samples["transport_samples"])
         if len(scenes) == 1:
             return self.scene_loss(*scenes[0], n, strata)
-        return member_mean(torch.arange(n) % len(scenes), lambda k, mask:
+        return scene_mean(torch.arange(n) % len(scenes), lambda k, mask:
                            self.scene_loss(*scenes[k], int(mask.sum()), strata))
 
     @staticmethod

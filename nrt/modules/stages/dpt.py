@@ -11,7 +11,8 @@ replay backpropagation), not the differential ratio tracking of the paper's base
   property grids in the format every stage exports (``init.grids``, a run's
   ``medium_grids.npz``), resampled to the coarsest grid: the path tracer refines another
   method's medium with the full multiple-scattering gradient.
-- Each step renders one random training view at ``spp`` with gradients; the loss is the
+- Each step renders one random training view, under its own environment (one Mitsuba
+  scene per environment of ``stage.environments``), at ``spp`` with gradients; the loss is the
   MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
   Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.log_image_loss`); ``dr.backward`` gives
   the grid gradients, which become the ``.grad`` of torch parameters (non-finite entries
@@ -109,7 +110,7 @@ class DPTModule(Stage):
         self.g = nn.Parameter(torch.zeros(res, res, res, 1)) \
             if effects["phase"] == "varying_hg" else None
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
-        self._renderer = None
+        self._renderers: dict[int, object] = {}  # a Mitsuba scene per environment, built once
         self._frames = None
         self._fixed_g = 0.0
         self._started = False  # grids set (from the EA density, or by a checkpoint)
@@ -145,15 +146,18 @@ class DPTModule(Stage):
             log.info("dpt keeps the HG g fixed at %.4f (%s)", self._fixed_g,
                      "model.phase_g" if self.hparams.phase_g is not None else
                      "the ground truth's: an oracle" if gt is not None else "default")
-        self.use_views(dm.train_data, dm.environment.radiance.cpu().numpy(), dm.val_data)
+        self.use_views(dm.train_data, {index: env.radiance.cpu().numpy()
+                                       for index, env in dm.training_environments().items()},
+                       dm.val_data)
         self._started = True
 
-    def use_views(self, frames, envmap: np.ndarray, val_data=None) -> None:
-        """The photos to fit (``images`` (N, H, W, 3), OpenGL ``c2w`` (N, 4, 4) and
-        ``intrinsics``, like :class:`nrt.data.dataset.SceneDataset`), lit by the
-        environment map ``envmap`` (H, W, 3), and the held-out views for validation."""
-        self._frames, self._env, self._val_data = frames, envmap, val_data
-        self._renderer = None
+    def use_views(self, frames, envmaps: dict[int, np.ndarray], val_data=None) -> None:
+        """The photos to fit (``images`` (N, H, W, 3), OpenGL ``c2w`` (N, 4, 4),
+        ``intrinsics`` and ``env_index`` (N,), like :class:`nrt.data.dataset.SceneDataset`),
+        each lit by its environment map in ``envmaps`` (environment index -> (H, W, 3)), and
+        the held-out views for validation (lit by the same maps)."""
+        self._frames, self._envmaps, self._val_data = frames, envmaps, val_data
+        self._renderers = {}
 
     @torch.no_grad()
     def _init_grids(self) -> None:
@@ -203,9 +207,10 @@ class DPTModule(Stage):
         return {"sigma_a": ((1 - albedo) * sigma_t).numpy(), "sigma_s": (albedo * sigma_t).numpy(),
                 "g": g.numpy()}
 
-    def renderer(self):
-        """The Mitsuba scene (``prbvolpath``) of the current grids, built once."""
-        if self._renderer is None:
+    def renderer(self, env: int):
+        """The Mitsuba scene (``prbvolpath``) of the current grids under environment
+        ``env`` (an index of :meth:`use_views`'s maps), built once."""
+        if env not in self._renderers:
             from nrt.mitsuba.render import ViewRenderer
             from nrt.mitsuba.scene import scene_dict
             from nrt.mitsuba.variant import select_variant
@@ -213,24 +218,27 @@ class DPTModule(Stage):
             mi = select_variant("auto")
             intr = self._frames.intrinsics
             spec = {"bbox": self.bbox.cpu().tolist(), "effects": self.effects}
-            self._renderer = ViewRenderer(mi, scene_dict(
-                mi, spec, self.property_arrays(), self._env, intr.width, intr.height,
+            renderer = ViewRenderer(mi, scene_dict(
+                mi, spec, self.property_arrays(), self._envmaps[env], intr.width, intr.height,
                 fov_x_deg(intr, "The training cameras"), self.hparams.spp,
                 integrator="prbvolpath"))
-            self._keys = self._renderer.medium_keys(
+            self._keys = renderer.medium_keys(
                 {name: suffix for name, suffix in MITSUBA_KEYS.items() if name in self.grids()})
-        return self._renderer
+            self._renderers[env] = renderer
+        return self._renderers[env]
 
     def _grid_values(self) -> dict[str, np.ndarray]:
-        """The torch grids as Mitsuba's parameters (scene key -> array)."""
-        self.renderer()
+        """The torch grids as Mitsuba's parameters (scene key -> array; the same keys in
+        every environment's scene)."""
         return {key: self.grids()[name].detach().cpu().contiguous().numpy()
                 for name, key in self._keys.items()}
 
-    def render_view(self, c2w: torch.Tensor, spp: int, seed: int) -> torch.Tensor:
-        """A forward render (H, W, 3) of the current grids from an OpenGL camera."""
-        self.renderer().set_parameters(self._grid_values())
-        return torch.from_numpy(self.renderer().render(c2w.cpu().numpy(), spp, seed))
+    def render_view(self, c2w: torch.Tensor, spp: int, seed: int, env: int) -> torch.Tensor:
+        """A forward render (H, W, 3) of the current grids from an OpenGL camera under
+        environment ``env``."""
+        renderer = self.renderer(env)
+        renderer.set_parameters(self._grid_values())
+        return torch.from_numpy(renderer.render(c2w.cpu().numpy(), spp, seed))
 
     # --------------------------------------------------------------- training
     def _resolution_now(self) -> int:
@@ -260,7 +268,7 @@ class DPTModule(Stage):
         Mitsuba's ``seed``), compare it with its photo (MSE after the log1p tonemap) and
         store the loss's gradient as the ``.grad`` of every grid (non-finite entries
         zeroed). Returns the loss."""
-        loss, grads = self.renderer().log_image_loss(
+        loss, grads = self.renderer(int(self._frames.env_index[frame])).log_image_loss(
             self._frames.c2w[frame].cpu().numpy(), self._frames.images[frame].cpu().numpy(),
             self._grid_values(), int(self.hparams.spp), int(seed))
         self.nonfinite_grads = 0
@@ -305,7 +313,7 @@ class DPTModule(Stage):
         h, w = batch["shape"]
         view = int(batch["view"])
         pred = self.render_view(self._val_data.c2w[view], int(self.hparams.val_spp),
-                                seed=1_000_003 + view)
+                                seed=1_000_003 + view, env=int(self._val_data.env_index[view]))
         ref = batch["rgb"].reshape(h, w, 3).cpu()
         if batch_idx == 0:
             log_image(self, "val/render_vs_truth", torch.cat((pred, ref), 1))
@@ -338,7 +346,7 @@ class DPTModule(Stage):
     def teardown(self, stage: str) -> None:
         """Drop the Mitsuba scene (Dr.Jit 3.9 can fail to compile a kernel while older
         scenes of the same plugins are still alive in the process)."""
-        self._renderer = None
+        self._renderers = {}
 
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """``medium_grids.npz`` at ``property_resolution`` (default: the ground truth's,

@@ -187,7 +187,7 @@ class GenerativeRTEModule(SplitRTEModule):
             self._uncollided_fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives(batch, scenes)
+        total = self.backward_objectives({**batch, "scene": batch["member"]}, scenes)
         prior = self.latent_prior()
         if any(self.objectives[name].medium_only for name in self.active_weights()):
             # the codes' regulariser, with their data term (the photos)

@@ -19,12 +19,13 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
-from nrt.errors import ConfigError, NrtError
+from nrt.errors import ConfigError, DatasetError, NrtError
 from nrt.losses.objective import Objective, Scenes, build_objectives
 from nrt.losses.samplers import DensityPointSampler, EnvironmentDirectionSampler
 from nrt.metrics import psnr
@@ -67,15 +68,63 @@ def mean_radiance(envmap: EnvironmentMap) -> float:
     return float((lum * solid).sum() / solid.sum().clamp_min(1e-30))
 
 
+@dataclass
+class Illumination:
+    """One training environment as stage 2 lights the medium with it: ``index`` (its
+    position in the dataset's environments), the map ``envmap`` E, its sun-less part
+    ``rest`` (the inflow of the light field; the sky's first scattering), the sun's part
+    ``sun`` (``E - rest``; None without a sun), the known ``lights`` (E's suns and the
+    scene's emitters), a ``sampler`` of directions like ``rest``, and ``scale``, E's mean
+    luminance (the light field's ``radiance_scale``)."""
+
+    index: int
+    envmap: EnvironmentMap
+    rest: EnvironmentMap
+    sun: EnvironmentMap | None
+    lights: DirectLights
+    sampler: EnvironmentDirectionSampler
+    scale: float
+
+
+def make_illumination(index: int, env: EnvironmentMap, sun: dict | None, emitters: list[dict],
+                      device: torch.device | str = "cpu") -> Illumination:
+    """:class:`Illumination` of ``env`` (the dataset's environment ``index``) with the point
+    ``emitters`` (``{position, intensity}``) and, when ``sun.threshold`` is set, E's texels
+    brighter than ``threshold x scale`` split off as at most ``sun.max_suns`` suns."""
+    scale = max(mean_radiance(env), 1e-6)
+    sun = sun or {}
+    if sun.get("threshold") is not None:
+        rest, sun_dirs, sun_irr = split_sun(env, float(sun["threshold"]) * scale,
+                                            int(sun.get("max_suns", 4)))
+    else:
+        rest, sun_dirs, sun_irr = env, torch.zeros(0, 3), torch.zeros(0, 3)
+    lights = DirectLights(
+        torch.tensor([e["position"] for e in emitters], dtype=torch.float32).reshape(-1, 3),
+        torch.tensor([e["intensity"] for e in emitters], dtype=torch.float32).reshape(-1, 3),
+        sun_dirs, sun_irr).to(device)
+    if sun_dirs.shape[0]:
+        log.info("Sun(s) of environment %d scattered explicitly: directions %s, irradiance %s",
+                 index, sun_dirs.tolist(), sun_irr.tolist())
+    part_of_sun = EnvironmentMap(env.radiance - rest.radiance).to(device) \
+        if sun_dirs.shape[0] else None
+    return Illumination(index, env.to(device), rest.to(device), part_of_sun, lights,
+                        EnvironmentDirectionSampler(rest), scale)
+
+
 class RadiativeTransferStage(Stage):
     """What every stage-2 formulation shares: the scene's effects (all scattering orders),
-    the training environment and its suns and emitters as known lights, the medium (the
-    dataset's ground truth in forward mode), the validation baselines, the property grids
-    that the metric callbacks score and the ``medium_grids.npz`` export. A subclass builds
+    the training environments (:class:`Illumination`: each with its suns and the emitters
+    as known lights), the medium (the dataset's ground truth in forward mode), the
+    validation baselines, the property grids that the metric callbacks score and the
+    ``medium_grids.npz`` export. A subclass builds
     ``self.light`` (with ``bbox`` and ``radiance_scale`` buffers) and, when
     :attr:`learns_medium`, ``self.medium``, from the factories its config groups give
     (``model/light_field``, ``model/medium``; :mod:`nrt.modules.stages.components`), and implements
     training and :meth:`predict_pixels`."""
+
+    MANY_ENVIRONMENTS = False
+    """Whether the stage trains on the photos of several environments at once (one light
+    field each); a stage that does not refuses ``stage.environments`` naming more than one."""
 
     def __init__(self, effects: dict, density: dict, sun: dict | None,
                  property_resolution: int | None):
@@ -92,11 +141,7 @@ class RadiativeTransferStage(Stage):
         self.learns_medium = density["source"] != "ground_truth"
         """False in forward mode, whose medium is the dataset's ground truth (set up later)."""
         self.medium: Medium | None = None
-        self.envmap: EnvironmentMap | None = None  # the training environment E
-        self.env_rest: EnvironmentMap | None = None  # E without its sun: the inflow of L
-        self.env_sun: EnvironmentMap | None = None  # the sun's part E - E_rest
-        self.lights: DirectLights | None = None
-        self.env_sampler: EnvironmentDirectionSampler | None = None  # directions like env_rest
+        self.illuminations: list[Illumination] = []  # the training environments, set up
         self.objectives: dict[str, Objective] = {}  # by name, in the order of losses.weights
 
     def active_weights(self) -> dict[str, float]:
@@ -137,50 +182,40 @@ class RadiativeTransferStage(Stage):
                                             bbox).to(self.device)
         self.medium.bbox.copy_(bbox)
         self.light.bbox.copy_(bbox)
-        env = dm.environment
-        scale = max(mean_radiance(env), 1e-6)
-        self.light.radiance_scale.fill_(scale)
-        self._set_lights(env, scale)
+        maps = dm.training_environments()
+        if len(maps) > 1 and not self.MANY_ENVIRONMENTS:
+            raise DatasetError(
+                f"Dataset '{dm.dataset_dir}': this stage learns the light field of one "
+                f"environment, but stage.environments selects {len(maps)}; choose one with "
+                "stage.environments=[<name or position>] (the split stage, stage=rte, trains "
+                "on several).")
+        self.illuminations = [make_illumination(index, env, self.hparams.sun,
+                                                self.effects.get("emitters") or [], self.device)
+                              for index, env in maps.items()]
+        self.light.radiance_scale.fill_(self.illuminations[0].scale)
 
-    def _set_lights(self, env: EnvironmentMap, scale: float) -> None:
-        """Known lights: the scene's point emitters and, when ``sun.threshold`` is set, the
-        environment's texels brighter than ``threshold x radiance_scale`` as suns."""
-        sun = self.hparams.sun or {}
-        if sun.get("threshold") is not None:
-            rest, sun_dirs, sun_irr = split_sun(env, float(sun["threshold"]) * scale,
-                                                int(sun.get("max_suns", 4)))
-        else:
-            rest, sun_dirs, sun_irr = env, torch.zeros(0, 3), torch.zeros(0, 3)
-        emitters = self.effects.get("emitters") or []
-        self.lights = DirectLights(
-            torch.tensor([e["position"] for e in emitters], dtype=torch.float32).reshape(-1, 3),
-            torch.tensor([e["intensity"] for e in emitters], dtype=torch.float32).reshape(-1, 3),
-            sun_dirs, sun_irr).to(self.device)
-        if sun_dirs.shape[0]:
-            log.info("Sun(s) of the environment scattered explicitly: directions %s, "
-                     "irradiance %s", sun_dirs.tolist(), sun_irr.tolist())
-        self.envmap = env.to(self.device)
-        self.env_rest = rest.to(self.device)
-        self.env_sun = EnvironmentMap(env.radiance - rest.radiance).to(self.device) \
-            if sun_dirs.shape[0] else None
-        self.env_sampler = EnvironmentDirectionSampler(rest)
+    @property
+    def sky(self) -> Illumination | None:
+        """The first training environment: the only one of a stage that learns one light
+        field (:attr:`MANY_ENVIRONMENTS` false); None before set-up."""
+        return self.illuminations[0] if self.illuminations else None
 
     def direct_source(self) -> DirectSource | None:
         """First scattering of the known lights (emitters, suns), or None without any."""
-        if self.lights is None or len(self.lights) == 0:
+        if self.sky is None or len(self.sky.lights) == 0:
             return None
         n_steps = int(self.hparams.samples.get("shadow_steps", 16))
 
         def source(x, w, props):
-            return direct_inscatter(x, w, props.g, self.lights,
+            return direct_inscatter(x, w, props.g, self.sky.lights,
                                     lambda p: self.medium(p).sigma_t, self.medium.bbox, n_steps)
         return source
 
     def sunless(self, dirs: torch.Tensor) -> torch.Tensor:
         """Mask of view directions that do not look into the sun's texels (all without one)."""
-        if self.env_sun is None:
+        if self.sky.sun is None:
             return torch.ones(dirs.shape[0], dtype=torch.bool, device=dirs.device)
-        return self.env_sun.lookup(dirs).sum(-1) <= 0
+        return self.sky.sun.lookup(dirs).sum(-1) <= 0
 
     # ------------------------------------------------------------- validation
     def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
@@ -361,9 +396,10 @@ class RTEModule(RadiativeTransferStage):
                                          int(s["vre_samples"]), int(s["vre_directions"]),
                                          jitter=False, direct_source=source)[0].detach())
             with torch.no_grad():
-                sun = self.env_sun.lookup(d) if self.env_sun is not None else torch.zeros_like(bg)
+                sun_part = self.sky.sun
+                sun = sun_part.lookup(d) if sun_part is not None else torch.zeros_like(bg)
                 exit_ = exit_radiance(self.light, o, d, bg - sun)
-                if self.env_sun is not None:
+                if sun_part is not None:
                     exit_ = exit_ + transmitted_background(self.medium, o, d, sun,
                                                            int(s["vre_samples"]))
             out["exit"].append(exit_)

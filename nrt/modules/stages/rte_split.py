@@ -40,6 +40,7 @@ import time
 from collections.abc import Callable, Mapping
 
 import torch
+from torch import nn
 
 from nrt.errors import ConfigError, DatasetError
 from nrt.losses.adjoint import adjoint_loss, medium_sensitivity
@@ -60,7 +61,7 @@ from nrt.modules.stages.components import (
     objective_components,
 )
 from nrt.modules.stages.ea import load_ea_field
-from nrt.modules.stages.rte import RadiativeTransferStage
+from nrt.modules.stages.rte import Illumination, RadiativeTransferStage
 from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.sky_light import sky_inscatter, uncollided_sh
@@ -93,6 +94,7 @@ class SplitRTEModule(RadiativeTransferStage):
     LIGHT_PROTOCOL: type = ScatteredLightField
     MEDIUM_PROTOCOL: type = VoxelisedMedium
     FITS = FITS
+    MANY_ENVIRONMENTS = True
 
     def __init__(self, effects: dict, light_field: Callable[..., ScatteredLightField] | dict,
                  medium: Callable[..., VoxelisedMedium] | dict, density: dict,
@@ -123,6 +125,9 @@ class SplitRTEModule(RadiativeTransferStage):
         check_learning_rates(lr, "model.lr", ("light", "medium"))
         self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
                            effects=effects)
+        self._make_light = make_light
+        self.more_lights = nn.ModuleList()  # the 2nd, 3rd ... training environment's
+        self._scene_of_env: dict[int, int] = {}  # dataset environment -> its light's position
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
         unknown = set(coupling or {}) - set(COUPLING)
@@ -145,10 +150,43 @@ class SplitRTEModule(RadiativeTransferStage):
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
         super().setup(stage)
+        if self.illuminations:
+            self.add_lights(len(self.illuminations))
+            if len(self.illuminations) > 1 and self.adjoint is not None:
+                raise ConfigError("model.coupling.adjoint=true solves the adjoint of one "
+                                  "environment's light; train on one (stage.environments=[0]).")
+            for light, sky in zip(self.env_lights, self.illuminations, strict=True):
+                light.bbox.copy_(self.light.bbox)
+                light.radiance_scale.fill_(sky.scale)
+            self._scene_of_env = {sky.index: k for k, sky in enumerate(self.illuminations)}
+            if len(self.illuminations) > 1:
+                log.info("Stage 2 trains on %d environments, a light field each",
+                         len(self.illuminations))
         if self.learns_medium and self.hparams.density["source"] in ("ea", "oracle") \
                 and not self._baked and self.datamodule() is not None:
             self.bake_density()  # a resumed run loads the same values
             self._baked = True
+
+    @property
+    def env_lights(self) -> list[ScatteredLightField]:
+        """The light field of each training environment, in the order of
+        :attr:`illuminations`."""
+        return [self.light, *self.more_lights]
+
+    def add_lights(self, count: int) -> None:
+        """Build light fields until there is one for each of ``count`` environments."""
+        while len(self.env_lights) < count:
+            self.more_lights.append(build(self._make_light, self.LIGHT_PROTOCOL, "light_field",
+                                          self.FITS, effects=self.effects).to(self.device))
+
+    def illumination_of(self, light: ScatteredLightField) -> Illumination:
+        """The environment ``light`` is the scattered light of. A light that is not one of
+        :attr:`env_lights` (a family member's, the adjoint's read of the stage's own) comes
+        from a stage with one environment, the first."""
+        for field, sky in zip(self.env_lights, self.illuminations, strict=True):
+            if light is field:
+                return sky
+        return self.illuminations[0]
 
     def bake_density(self) -> None:
         """Bake the EA run's density into the medium, or with ``init=oracle`` the dataset's
@@ -171,7 +209,8 @@ class SplitRTEModule(RadiativeTransferStage):
     def param_groups(self) -> list[dict]:
         """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
         lr = self.hparams.lr
-        groups = [{"params": list(self.light.parameters()), "lr": lr["light"]}]
+        groups = [{"params": [p for light in self.env_lights for p in light.parameters()],
+                   "lr": lr["light"]}]
         if self.adjoint is not None:
             groups.append({"params": list(self.adjoint.parameters()), "lr": lr["light"]})
         if self.learns_medium:
@@ -190,19 +229,20 @@ class SplitRTEModule(RadiativeTransferStage):
         return self.medium.voxels() if self.learns_medium else self.medium
 
     def inscatter(self, medium, light: ScatteredLightField, coefficients_grad: bool = False):
-        """In-scattering of all light for the camera rays' VRE: the sky's and the known
-        lights' first scattering (with gradients to ``medium``) plus the scattered light's
-        (``light``) exact SH in-scattering (``g^l`` with gradient, the coefficients only with
-        ``coefficients_grad``)."""
+        """In-scattering of all light for the camera rays' VRE: the first scattering of the
+        sky and the known lights of ``light``'s environment (with gradients to ``medium``)
+        plus the scattered light's (``light``) exact SH in-scattering (``g^l`` with gradient,
+        the coefficients only with ``coefficients_grad``)."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
+        sky = self.illumination_of(light)
 
         def source(x, w, props):
-            total = sky_inscatter(x, w, props.g, sigma_t, medium.bbox, self.env_rest,
-                                  self.env_sampler, int(s["sky_env_directions"]),
+            total = sky_inscatter(x, w, props.g, sigma_t, medium.bbox, sky.rest,
+                                  sky.sampler, int(s["sky_env_directions"]),
                                   int(s["sky_phase_directions"]), int(s["shadow_steps"]))
-            if self.lights is not None and len(self.lights):
-                total = total + direct_inscatter(x, w, props.g, self.lights, sigma_t,
+            if len(sky.lights):
+                total = total + direct_inscatter(x, w, props.g, sky.lights, sigma_t,
                                                  medium.bbox, int(s["shadow_steps"]), jitter=True)
             total = total + light.inscatter(x, w, props.g, trainable=coefficients_grad)
             n_dirs = int(self.coupling["unrolled_directions"])
@@ -215,14 +255,15 @@ class SplitRTEModule(RadiativeTransferStage):
 
     @torch.no_grad()
     def refresh_uncollided(self, medium, light: ScatteredLightField) -> None:
-        """SH projection of the uncollided light in ``medium`` at ``light``'s cache points
-        (the first refresh replaces the cache, later ones blend into it)."""
+        """SH projection of the uncollided light of ``light``'s environment in ``medium`` at
+        its cache points (the first refresh replaces the cache, later ones blend into it)."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
+        sky = self.illumination_of(light)
         pts = light.cache_points()
         chunk = int(s.get("uncollided_chunk", 2048))
         coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, light.bbox,
-                                        self.env_rest, self.env_sampler, self.lights,
+                                        sky.rest, sky.sampler, sky.lights,
                                         light.degree, int(s["uncollided_directions"]),
                                         int(s["shadow_steps"]))
                           for i in range(0, len(pts), chunk)])
@@ -259,11 +300,15 @@ class SplitRTEModule(RadiativeTransferStage):
         medium = self.transport_medium()
         start = time.perf_counter()
         if self.uncollided_due():
-            self.refresh_uncollided(detached(medium), self.light)
+            for light in self.env_lights:
+                self.refresh_uncollided(detached(medium), light)
             self._uncollided_fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives(batch, [(medium, self.light)])
+        scenes = [(medium, light) for light in self.env_lights]
+        if len(scenes) > 1:
+            batch = {**batch, "scene": self.scenes_of(batch["env"])}
+        total = self.backward_objectives(batch, scenes)
         if self._photo_coefficients is not None and self._photo_coefficients.grad is not None:
             self.adjoint_step(medium, self._photo_coefficients.grad)
         self._photo_coefficients = None
@@ -272,6 +317,14 @@ class SplitRTEModule(RadiativeTransferStage):
         opt.step()
         self.lr_schedulers().step()
         return torch.as_tensor(total)
+
+    def scenes_of(self, env: torch.Tensor) -> torch.Tensor:
+        """Each ray's position among the training environments (its light field in
+        :attr:`env_lights`), from its position ``env`` (B,) among the dataset's."""
+        lookup = torch.full((max(self._scene_of_env) + 1,), -1, dtype=torch.long)
+        for index, k in self._scene_of_env.items():
+            lookup[index] = k
+        return lookup[env.cpu()]
 
     def adjoint_step(self, medium, grad: torch.Tensor) -> None:
         """Fold the photo loss's gradient to the coefficient grid (``grad``) into the adjoint
@@ -300,6 +353,13 @@ class SplitRTEModule(RadiativeTransferStage):
         self.log("time/step_adjoint_s", time.perf_counter() - start)
 
     # ------------------------------------------------------------- validation
+    def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
+        """:meth:`predict_pixels` of a held-out view lit by its own environment's light."""
+        light = self.env_lights[self._scene_of_env.get(int(batch["env"]), 0)]
+        with torch.no_grad():
+            return self.render_pixels(batch["origins"], batch["dirs"], batch["background"],
+                                      self.transport_medium(), light)
+
     def predict_pixels(self, origins: torch.Tensor, dirs: torch.Tensor,
                        background: torch.Tensor) -> dict[str, torch.Tensor]:
         """Two predictions of ``L(o, -v)`` (R, 3) for view rays, chunked, without graph:
@@ -329,5 +389,9 @@ class SplitRTEModule(RadiativeTransferStage):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         """The baked density comes with the state (no EA field needed); the medium resizes
         its grid to the checkpoint's itself
-        (:class:`~nrt.modules.fields.voxel_medium.VoxelMedium`)."""
+        (:class:`~nrt.modules.fields.voxel_medium.VoxelMedium`); the light fields of more
+        environments than one are built to receive theirs."""
         self._baked = True
+        more = {key.split(".")[1] for key in checkpoint["state_dict"]
+                if key.startswith("more_lights.")}
+        self.add_lights(1 + len(more))
