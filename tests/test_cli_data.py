@@ -75,6 +75,7 @@ def runs(tiny_dataset, tiny_output_dir, tmp_path_factory) -> dict:
     return {**done, "tiny_files": tiny_files}
 
 
+@pytest.mark.slow  # CLI processes (~6-8 s): keeps the fast tier under 3 minutes
 def test_renders_once_then_reuses_the_cached_folder(tmp_path):
     out = tmp_path / "out"
     args = ("preset=tiny", *SMALL, "render.progress=false", f"paths.output_dir={out}")

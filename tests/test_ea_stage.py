@@ -81,6 +81,7 @@ def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
     assert list(run.glob("csv/resumed-*/metrics.csv"))
 
 
+@pytest.mark.slow  # a CLI process per case (~6 s): keeps the fast tier under 3 minutes
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
     proc = run_train(tmp_path, tiny_dataset.parent, "resume=true")
     assert proc.returncode == 2

@@ -23,7 +23,11 @@ from conftest import read_csv_metrics, run_train, values
 from nrt.callbacks import WallClock
 from nrt.data.grids import load_property_grids, save_property_grids
 from nrt.errors import NrtError
-from nrt.evaluation.evaluate import choose_environments, seen_environments
+from nrt.evaluation.evaluate import (
+    choose_environments,
+    named_environments,
+    seen_environments,
+)
 from nrt.metrics import ssim
 from nrt.weights import LPIPS_FILES, weights_dir
 
@@ -99,6 +103,7 @@ def test_eval_reports_real_lpips(tmp_path, tiny_dataset):
     assert 0.0 < metrics["lpips_seen"] < 0.2
 
 
+@pytest.mark.slow  # CLI processes (~6-8 s): keeps the fast tier under 3 minutes
 def test_lpips_missing_weights_is_a_clear_cli_error(tmp_path, tiny_dataset):
     proc = run_eval(tmp_path, tiny_dataset.parent, f"grids={tiny_dataset / 'ground_truth.npz'}",
                     env={"NRT_WEIGHTS_DIR": str(tmp_path / "empty")})
@@ -133,15 +138,20 @@ def test_ssim_is_one_for_equal_images_and_falls_with_noise():
 
 
 def test_seen_environments_are_the_trained_ones_or_else_the_first():
-    """A run's training environments are its seen ones; a grid file's training is unknown,
-    and the first environment (stages rte, dpt and forward train on it by default) counts
-    as seen: with a single environment, nothing is labelled novel."""
+    """A run's training environments are its seen ones; for a grid file nrt-eval names the
+    scene's training skies (``scene.environments.train``); with none known the first
+    environment (every stage trains on it) counts as seen: with a single environment,
+    nothing is labelled novel."""
     three = SimpleNamespace(env_names=["sky0", "sky1", "sky2"], root="d")
     assert seen_environments(three, ["sky1"]) == ["sky1"]
     assert seen_environments(three, []) == ["sky0"]
     assert choose_environments(three, "novel", seen_environments(three, [])) == ["sky1", "sky2"]
     one = SimpleNamespace(env_names=["sky0"], root="d")
     assert seen_environments(one, []) == ["sky0"]
+    # nrt-eval grids=<file>: the scene's training skies (scene.environments.train) stand in
+    assert named_environments(three, [0, 1]) == ["sky0", "sky1"]
+    assert named_environments(three, ["sky2", 5]) == ["sky2"]
+    assert named_environments(three, None) == ["sky0", "sky1", "sky2"]
 
 
 def test_novel_environments_are_those_not_trained_on():

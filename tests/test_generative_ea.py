@@ -292,6 +292,7 @@ def test_good_modes_pass_the_check():
         check_mode(compose_config("train", overrides))
 
 
+@pytest.mark.slow  # a CLI process per case (~6 s): keeps the fast tier under 3 minutes
 def test_bad_configs_exit_2_before_any_data(tmp_path):
     """Through the real CLI: one ``nrt: error:`` paragraph, status 2, nothing rendered
     and no run folder left behind."""

@@ -49,7 +49,8 @@ def check_inputs(cfg: DictConfig) -> dict:
 
 def load_medium(cfg: DictConfig, inputs: dict) -> dict:
     """The medium of :func:`check_inputs`: grids, effects, dataset folder (rendered when
-    missing), trained environments, source."""
+    missing), trained environments (a grid file's are unknown: ``scene_train``, the
+    scene's ``environments.train``, stands for them), source."""
     from nrt.data.grids import load_property_grids
     from nrt.data.render import ensure_dataset
     from nrt.evaluation.runs import run_grids
@@ -63,7 +64,8 @@ def load_medium(cfg: DictConfig, inputs: dict) -> dict:
     dataset_dir = ensure_dataset(scene, cfg.paths.data_dir, variant=cfg.render.variant,
                                  progress=cfg.render.progress)
     return {"grids": load_property_grids(path), "effects": scene["effects"],
-            "dataset_dir": dataset_dir, "trained": [], "source": str(path), "stage": "grids"}
+            "dataset_dir": dataset_dir, "trained": [], "source": str(path), "stage": "grids",
+            "scene_train": scene["environments"].get("train", [0])}
 
 
 def rows_table(rows: list[dict]) -> list[str]:
@@ -103,6 +105,8 @@ def eval_task(cfg: DictConfig) -> dict:
         raise NrtError(f"{exc} Or skip LPIPS with metrics.lpips=false.") from None
     medium = load_medium(cfg, inputs)
     data = load_dataset(medium["dataset_dir"], "test")
+    if not medium["trained"] and "scene_train" in medium:  # a grid file: the scene's skies
+        medium["trained"] = evaluate.named_environments(data, medium["scene_train"])
     grids = medium["grids"]
     bbox = grids.get("bbox", data.bbox)
     if cfg.export.resolution and grids["g"].shape[0] != int(cfg.export.resolution):

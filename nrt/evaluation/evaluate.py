@@ -66,16 +66,25 @@ def property_metrics(grids: Mapping, truth: Mapping, effects: dict) -> dict[str,
 
 
 def seen_environments(data: SceneDataset, trained: list[str]) -> list[str]:
-    """The environments whose illumination the medium has seen: ``trained`` (a run's), or,
-    when unknown (a property-grid file: ``trained`` empty), the dataset's first one, the
-    one stages rte, dpt and forward train on by default (``stage.environments: [0]``).
-    With a single environment, every frame is under seen illumination."""
+    """The environments whose illumination the medium has seen: ``trained`` (a run's, or
+    for a property-grid file the scene's training skies, :func:`named_environments`), or,
+    when unknown (``trained`` empty), the dataset's first one, which every stage trains
+    on. With a single environment, every frame is under seen illumination."""
     if trained:
         return list(trained)
-    log.info("The medium's training environments are unknown (a property-grid file): "
-             "counting '%s', the one stages rte, dpt and forward train on by default, as "
-             "seen; the others as novel.", data.env_names[0])
+    log.info("The medium's training environments are unknown: counting '%s', the first, "
+             "as seen; the others as novel.", data.env_names[0])
     return list(data.env_names[:1])
+
+
+def named_environments(data: SceneDataset, wanted: list[str | int] | None) -> list[str]:
+    """The dataset's environments that ``wanted`` names (positions or names, as
+    ``scene.environments.train``; null: all), those it lacks left out."""
+    if wanted is None:
+        return list(data.env_names)
+    names = [data.env_names[w] if isinstance(w, int) and 0 <= w < len(data.env_names)
+             else str(w) for w in wanted]
+    return [n for n in names if n in data.env_names]
 
 
 def choose_environments(data: SceneDataset, wanted, trained: list[str]) -> list[str]:
