@@ -3,9 +3,9 @@ held-out images for validation. Rays are made on the fly from the dataset tensor
 (no per-epoch copies); every batch carries the known background ``E(v)`` of its rays.
 
 A batch is a dict of ``origins``, ``dirs`` (unit view directions v), ``rgb`` (pixel
-radiance) and ``background`` (``E(v)`` of the ray's environment), each (B, 3), and ``env`` (B,), the
-position of each ray's environment in the dataset's; validation batches add ``view``
-(index) and ``shape`` (H, W), and their ``env`` is one int. :class:`RayDataModule`
+radiance) and ``background`` (``E(v)`` of the ray's environment), each (B, 3), and
+``env`` (B,), the position of each ray's environment in the dataset's; validation batches
+add ``view`` (index) and ``shape`` (H, W), and their ``env`` is one int. :class:`RayDataModule`
 reads one dataset; :class:`FamilyRayDataModule` the members of a scene family
 (``mode=generative``), whose batches add ``member`` (B,) (training: each ray's member;
 validation: the view's member, and ``view`` counts within it).
@@ -138,18 +138,6 @@ class RayDataModule(L.LightningDataModule):
         self.setup()
         used = sorted(self.train_data.env_index.unique().tolist())
         return {i: self.train_data.envmaps[i] for i in used}
-
-    @property
-    def environment(self) -> EnvironmentMap:
-        """The one environment lighting the selected frames (a stage that learns one light
-        field, or renders under one sky)."""
-        maps = self.training_environments()
-        if len(maps) != 1:
-            names = [self.train_data.env_names[i] for i in maps]
-            raise DatasetError(f"Dataset '{self.dataset_dir}': this stage learns the light field "
-                               f"of one environment, but the training frames use {names}; "
-                               "choose one with data.environments=[<name or position>].")
-        return next(iter(maps.values()))
 
     @property
     def bbox(self) -> torch.Tensor:

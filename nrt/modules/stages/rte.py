@@ -70,15 +70,14 @@ def mean_radiance(envmap: EnvironmentMap) -> float:
 
 @dataclass
 class Illumination:
-    """One training environment as stage 2 lights the medium with it: ``index`` (its
-    position in the dataset's environments), the map ``envmap`` E, its sun-less part
-    ``rest`` (the inflow of the light field; the sky's first scattering), the sun's part
-    ``sun`` (``E - rest``; None without a sun), the known ``lights`` (E's suns and the
+    """One training environment E as stage 2 lights the medium with it: ``index`` (its
+    position in the dataset's environments), E's sun-less part ``rest`` (the inflow of the
+    light field; the sky's first scattering), the sun's part ``sun`` (``E - rest``; None
+    without a sun), the known ``lights`` (E's suns and the
     scene's emitters), a ``sampler`` of directions like ``rest``, and ``scale``, E's mean
     luminance (the light field's ``radiance_scale``)."""
 
     index: int
-    envmap: EnvironmentMap
     rest: EnvironmentMap
     sun: EnvironmentMap | None
     lights: DirectLights
@@ -107,7 +106,7 @@ def make_illumination(index: int, env: EnvironmentMap, sun: dict | None, emitter
                  index, sun_dirs.tolist(), sun_irr.tolist())
     part_of_sun = EnvironmentMap(env.radiance - rest.radiance).to(device) \
         if sun_dirs.shape[0] else None
-    return Illumination(index, env.to(device), rest.to(device), part_of_sun, lights,
+    return Illumination(index, rest.to(device), part_of_sun, lights,
                         EnvironmentDirectionSampler(rest), scale)
 
 

@@ -127,7 +127,7 @@ class SplitRTEModule(RadiativeTransferStage):
                            effects=effects)
         self._make_light = make_light
         self.more_lights = nn.ModuleList()  # the 2nd, 3rd ... training environment's
-        self._scene_of_env: dict[int, int] = {}  # dataset environment -> its light's position
+        self._scene_of_env = torch.zeros(0, dtype=torch.long)  # dataset env -> its light
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
         unknown = set(coupling or {}) - set(COUPLING)
@@ -158,7 +158,9 @@ class SplitRTEModule(RadiativeTransferStage):
             for light, sky in zip(self.env_lights, self.illuminations, strict=True):
                 light.bbox.copy_(self.light.bbox)
                 light.radiance_scale.fill_(sky.scale)
-            self._scene_of_env = {sky.index: k for k, sky in enumerate(self.illuminations)}
+            indices = [sky.index for sky in self.illuminations]
+            self._scene_of_env = torch.full((max(indices) + 1,), -1, dtype=torch.long)
+            self._scene_of_env[indices] = torch.arange(len(indices))
             if len(self.illuminations) > 1:
                 log.info("Stage 2 trains on %d environments, a light field each",
                          len(self.illuminations))
@@ -321,10 +323,7 @@ class SplitRTEModule(RadiativeTransferStage):
     def scenes_of(self, env: torch.Tensor) -> torch.Tensor:
         """Each ray's position among the training environments (its light field in
         :attr:`env_lights`), from its position ``env`` (B,) among the dataset's."""
-        lookup = torch.full((max(self._scene_of_env) + 1,), -1, dtype=torch.long)
-        for index, k in self._scene_of_env.items():
-            lookup[index] = k
-        return lookup[env.cpu()]
+        return self._scene_of_env[env.cpu()]
 
     def adjoint_step(self, medium, grad: torch.Tensor) -> None:
         """Fold the photo loss's gradient to the coefficient grid (``grad``) into the adjoint
@@ -355,7 +354,7 @@ class SplitRTEModule(RadiativeTransferStage):
     # ------------------------------------------------------------- validation
     def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
         """:meth:`predict_pixels` of a held-out view lit by its own environment's light."""
-        light = self.env_lights[self._scene_of_env.get(int(batch["env"]), 0)]
+        light = self.env_lights[int(self._scene_of_env[int(batch["env"])])]
         with torch.no_grad():
             return self.render_pixels(batch["origins"], batch["dirs"], batch["background"],
                                       self.transport_medium(), light)
