@@ -57,13 +57,19 @@ def tiny_output_dir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def tiny_dataset(tiny_output_dir) -> Path:
     """Folder of the default scene's ``tiny`` dataset (16 train + 4 test views of 32x32
-    under one sky), rendered with Mitsuba once per session. Treat it as read-only: tests
+    under each of three skies), rendered with Mitsuba once per session. Treat it as read-only: tests
     that corrupt a dataset copy it first."""
     cfg = compose_config("dataset", ["preset=tiny", f"paths.output_dir={tiny_output_dir}"])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
     folder = ensure_dataset(scene, cfg.paths.data_dir, progress=False)
     assert (folder / "scene.json").is_file(), folder
     return folder
+
+
+ONE_SKY = ("scene.environments.sky_seeds=[0]", "scene.environments.train=[0]")
+"""The tiny scene under one sky: the in-process tests of a stage's mechanics render a third
+of the tiny preset's images (three skies, two trained on). The several-skies path has its
+own tests (test_rte_split_stage.py, test_dpt_stage.py) and the CLI tests run the preset."""
 
 
 GENERATIVE_FAMILY = ("preset=tiny", "scene=family", "mode=generative")

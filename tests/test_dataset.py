@@ -22,6 +22,8 @@ from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import DatasetError, SceneError
 
 SPLIT_SIZES = {"train": 16, "test": 4}
+"""Views per split of the tiny scene; every view is rendered under each of its three skies."""
+SKIES = ["sky0", "sky1", "sky2"]
 # A render of a few pixels: enough to exercise the cache without costing seconds.
 SMALL = ("scene.cameras.num_train=2", "scene.cameras.num_test=1", "scene.cameras.width=8",
          "scene.cameras.height=8", "scene.spp=4", "scene.medium.resolution=8")
@@ -42,12 +44,16 @@ def file_times(folder: Path) -> dict[str, int]:
 @pytest.mark.parametrize("split", list(SPLIT_SIZES))
 def test_tiny_dataset_shapes(splits, split):
     ds = splits[split]
-    n = SPLIT_SIZES[split]
+    views = SPLIT_SIZES[split]
+    n = views * len(SKIES)
     assert len(ds) == n and ds.split == split
     assert ds.images.shape == (n, 32, 32, 3) and ds.images.dtype == torch.float32
     assert ds.c2w.shape == (n, 4, 4) and ds.c2w.dtype == torch.float32
-    assert ds.env_names == ["sky0"] and ds.env_index.tolist() == [0] * n
-    assert [tuple(m.radiance.shape) for m in ds.envmaps] == [(32, 64, 3)]
+    # frames grouped by sky, the same cameras under each
+    assert ds.env_names == SKIES
+    assert ds.env_index.tolist() == [i for i in range(len(SKIES)) for _ in range(views)]
+    torch.testing.assert_close(ds.c2w[:views], ds.c2w[-views:], rtol=0, atol=0)
+    assert [tuple(m.radiance.shape) for m in ds.envmaps] == [(32, 64, 3)] * len(SKIES)
     torch.testing.assert_close(ds.bbox, torch.tensor([[-1.0] * 3, [1.0] * 3]))
 
 
@@ -65,7 +71,7 @@ def test_spec_and_folder_name_record_the_resolved_scene(splits, tiny_dataset, sc
     assert splits["train"].spec == spec == splits["test"].spec
     assert tiny_dataset.name == f"default-{spec_hash(spec)}"
     info = json.loads((tiny_dataset / "scene.json").read_text())
-    assert info["spec_hash"] == spec_hash(spec) and info["renderer"]["images"] == 20
+    assert info["spec_hash"] == spec_hash(spec) and info["renderer"]["images"] == 3 * 20
 
 
 def test_ground_truth_matches_medium_grids(splits):
@@ -162,7 +168,7 @@ def test_incomplete_cached_folder_is_rendered_again(tmp_path, scene_config):
     (stale / "transforms_train.json").write_text("{")
     folder = render.ensure_dataset(scene, tmp_path, progress=False)
     assert folder == stale and (folder / "scene.json").is_file()
-    assert len(load_dataset(folder, "train")) == 2
+    assert len(load_dataset(folder, "train")) == 2 * len(SKIES)
     assert [p.name for p in tmp_path.iterdir()] == [stale.name]
 
 
@@ -347,7 +353,7 @@ def test_bad_input_raises_dataset_error_naming_the_culprit(dataset_copy, case):
 
 def test_a_broken_split_leaves_the_other_loadable(dataset_copy):
     delete("images/sky0/test_001.exr")(dataset_copy)
-    assert len(load_dataset(dataset_copy, "train")) == 16
+    assert len(load_dataset(dataset_copy, "train")) == 16 * len(SKIES)
     with pytest.raises(DatasetError, match="test_001.exr"):
         load_dataset(dataset_copy, "test")
 
@@ -365,7 +371,8 @@ def test_dataset_from_another_tool_loads(tiny_dataset, tmp_path):
     (root / "maps").mkdir()
     shutil.copy(tiny_dataset / "envmaps" / "sky0.exr", root / "maps" / "noon.exr")
     frames = []
-    for i, frame in enumerate(src["frames"]):
+    sky0 = [f for f in src["frames"] if f["environment"] == "sky0"]
+    for i, frame in enumerate(sky0):
         shutil.copy(tiny_dataset / frame["file_path"], root / "train" / f"r_{i}.exr")
         frames.append({"file_path": f"./train/r_{i}", "transform_matrix":
                        frame["transform_matrix"]})
@@ -374,7 +381,7 @@ def test_dataset_from_another_tool_loads(tiny_dataset, tmp_path):
     (root / "transforms_train.json").write_text(json.dumps(meta))
 
     ds = load_dataset(root, "train")
-    ref = load_dataset(tiny_dataset, "train")
+    ref = load_dataset(tiny_dataset, "train").select_environments(["sky0"])
     assert ds.ground_truth is None and ds.spec is None
     assert ds.env_names == ["noon"] and ds.env_index.tolist() == [0] * 16
     assert ds.intrinsics.width == ds.intrinsics.height == 32
@@ -390,5 +397,5 @@ def test_training_on_a_sky_the_dataset_lacks_names_the_key_to_set(tiny_dataset):
     """A stage told to train on an environment the dataset does not have stops with the
     keys that choose them and the positions it does have."""
     data = load_dataset(tiny_dataset, "train")
-    with pytest.raises(DatasetError, match=r"scene\.environments\.train.*positions 0\.\.0"):
-        data.select_environments([0, 1])
+    with pytest.raises(DatasetError, match=r"scene\.environments\.train.*positions 0\.\.2"):
+        data.select_environments([0, 3])

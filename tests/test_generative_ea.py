@@ -153,7 +153,7 @@ def test_single_mode_composes_the_single_scene_stage():
     assert cfg.mode.name == "single" and cfg.model._target_ == "nrt.modules.stages.ea.EAModule"
     assert cfg.data._target_ == "nrt.data.datamodule.RayDataModule"
     assert "latent_dim" not in cfg.model.density_field and cfg.model.get("latent_dim") is None
-    assert list(cfg.stage.environments) == [0]  # the tiny preset's one sky
+    assert list(cfg.stage.environments) == [0, 1]  # the tiny preset's two training skies
     cfg = compose_config("train", list(FAMILY))
     assert cfg.model._target_.endswith("GenerativeEAModule") and cfg.model.members == K
     assert cfg.model.latent_dim == 4 and list(cfg.stage.environments) == [0]

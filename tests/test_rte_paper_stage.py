@@ -10,7 +10,15 @@ import hydra
 import numpy as np
 import pytest
 import torch
-from conftest import compose_config, last_value, only_run_dir, read_csv_metrics, run_train, values
+from conftest import (
+    ONE_SKY,
+    compose_config,
+    last_value,
+    only_run_dir,
+    read_csv_metrics,
+    run_train,
+    values,
+)
 from finite_training import fit
 from omegaconf import OmegaConf
 
@@ -174,9 +182,10 @@ SMALL = ["budget.rte.collocation_points=256", "budget.rte.boundary_points=256",
 def build(tmp_path, *overrides: str, stage: str = "rte", paper: bool = True):
     """Model and DataModule of ``stage=<stage> preset=tiny init=none`` plus ``overrides``
     (with ``paper``: the paper's formulation at small counts), on a 16x16, 8 spp dataset
-    rendered into ``tmp_path``."""
+    under one sky (:data:`conftest.ONE_SKY`) rendered into ``tmp_path``."""
     chosen = [PAPER, *SMALL] if paper else []
-    cfg = compose_config("train", [f"stage={stage}", "preset=tiny", "init=none", *chosen,
+    cfg = compose_config("train", [f"stage={stage}", "preset=tiny", "init=none", *ONE_SKY,
+                                   *chosen,
                                    "scene.cameras.width=16", "scene.cameras.height=16",
                                    "scene.spp=8", *overrides])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)

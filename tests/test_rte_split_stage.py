@@ -59,16 +59,17 @@ def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     assert values(rows, "train/loss_transport") and not values(rows, "train/loss_photo")
 
 
-@pytest.mark.slow  # ~50 s after the session's EA run
+@pytest.mark.slow  # ~60 s after the session's EA run
 def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
     """``stage=ea`` then ``stage=rte`` through the CLI: stage 2 finds the EA checkpoint
     itself and says so, logs the time and loss of each objective and the property MSEs from
-    step 0, and moves the medium toward the truth. Measured at the tiny preset (900 steps,
-    stage-2 seeds 0-2 from one EA run, 2026-11-23): end/start MSE sigma_t 0.804-0.808,
-    sigma_a 0.43-0.45, g 0.07-0.12, held-out PSNR 34.96-35.02 dB (T E(v) 25.4). The seeds
-    scatter by ~0.002 in the sigma_t ratio, so 0.85 is far outside their noise and far
-    below 1; the tiny scene's 16 views of 32 x 32 pixels do not pin the medium down further
-    (docs/stage2.md)."""
+    step 0, and moves the medium toward the truth. Measured at the tiny preset (two
+    training skies, 900 steps, stage-2 seeds 0-2 from one EA run, 2026-11-24): end/start
+    MSE sigma_t 0.498-0.510 (18.70 -> 9.30-9.53), sigma_a 0.31-0.34, g 0.02-0.06, held-out
+    PSNR 35.39-35.44 dB. The seeds spread by 0.012 in the sigma_t ratio, so the bound 0.6
+    lies eight spreads above the worst seed and under the issue's two thirds (an
+    improvement by at least a third). Under one sky the same runs ended at 0.80-0.81
+    (docs/stage2.md, "Several skies")."""
     out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"
@@ -100,7 +101,7 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
                                    atol=1e-6)
 
 
-SIGMA_T_RATIO_MAX = 0.85
+SIGMA_T_RATIO_MAX = 0.6
 """End/start sigma_t MSE of the tiny CLI run; measured: see the test's docstring."""
 
 

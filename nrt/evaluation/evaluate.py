@@ -11,9 +11,9 @@
 
 Metric names: ``mse_<property>_x100``; ``<metric>_<group>`` with group ``seen`` (frames
 under the environments the medium was fitted under: a run's training environments; for a
-property-grid file, whose training is unknown, the dataset's first environment, which
-stages rte, dpt and forward train on by default), ``novel`` (under the others; absent when
-the dataset has a single environment), ``env_<name>``; ``*_noise_floor_*`` for the true
+property-grid file, whose training is unknown, the scene's ``environments.train``, else the
+dataset's first environment), ``novel`` (under the others; absent when the dataset has a
+single environment), ``env_<name>``; ``*_noise_floor_*`` for the true
 medium; ``*_relit`` for relighting.
 """
 
