@@ -84,7 +84,7 @@ def test_renders_once_then_reuses_the_cached_folder(tmp_path):
     folder = Path(first.stdout.strip())  # stdout is the folder alone: DATA=$(nrt-data ...)
     assert folder.parent == out / "datasets" and folder.name.startswith("default-")
     assert (folder / "scene.json").is_file() and (folder / "transforms_test.json").is_file()
-    assert "Rendered 3 images" in first.stderr
+    assert "Rendered 9 images" in first.stderr  # 2 + 1 views under each of 3 skies
     before = file_times(folder)
 
     start = time.perf_counter()
