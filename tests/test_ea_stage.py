@@ -7,11 +7,11 @@ import subprocess
 import time
 from pathlib import Path
 
+import conftest
 import numpy as np
 import pytest
 import torch
 from conftest import (
-    ONE_SKY,
     compose_config,
     last_value,
     only_run_dir,
@@ -151,7 +151,7 @@ def test_a_failed_start_removes_only_what_it_wrote(tmp_path):
 @pytest.mark.parametrize("max_extinction,name", [(50.0, "dense"), (1e-4, "near_empty")])
 def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, name):
     cfg = compose_config("train", [
-        "preset=tiny", *ONE_SKY, f"scene.name={name}",
+        "preset=tiny", *conftest.ONE_SKY, f"scene.name={name}",
         f"scene.medium.max_extinction={max_extinction}", "scene.cameras.width=16",
         "scene.cameras.height=16", "scene.spp=8"])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
