@@ -82,9 +82,14 @@ def named_environments(data: SceneDataset, wanted: list[str | int] | None) -> li
     ``scene.environments.train``; null: all), those it lacks left out."""
     if wanted is None:
         return list(data.env_names)
-    names = [data.env_names[w] if isinstance(w, int) and 0 <= w < len(data.env_names)
-             else str(w) for w in wanted]
-    return [n for n in names if n in data.env_names]
+    return [n for n in _names(data, wanted) if n in data.env_names]
+
+
+def _names(data: SceneDataset, wanted: list[str | int]) -> list[str]:
+    """``wanted`` as environment names: a position in the dataset's environments becomes
+    its name, anything else (a name, a position it lacks) its string."""
+    return [data.env_names[w] if isinstance(w, int) and 0 <= w < len(data.env_names)
+            else str(w) for w in wanted]
 
 
 def choose_environments(data: SceneDataset, wanted, trained: list[str]) -> list[str]:
@@ -100,7 +105,7 @@ def choose_environments(data: SceneDataset, wanted, trained: list[str]) -> list[
         return novel or list(data.env_names)
     if wanted == "all":
         return list(data.env_names)
-    names = [data.env_names[w] if isinstance(w, int) else str(w) for w in wanted]
+    names = _names(data, wanted)
     from nrt.errors import NrtError
 
     unknown = [n for n in names if n not in data.env_names]
