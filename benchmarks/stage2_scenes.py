@@ -10,8 +10,9 @@ photo objective's image, training seconds and steps. Every scene is reported, no
         [--preset cpu] [--out DIR] [override ...]
 
 Scenes: ``default`` (the settings were chosen on it), ``default_seed1..3`` (the default
-scene drawn from other seeds), ``varying_g`` (a g field) and ``heldout`` (an explicit
-elements list written once and never tuned on).
+scene drawn from other seeds), ``varying_g`` (a g field), ``heldout`` and ``heldout2``
+(explicit elements lists, each written once and never tuned on; the second after the
+extinction prior was chosen).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ SCENES = {
     "default_seed3": ["scene.seed=3", "scene.name=default_seed3"],
     "varying_g": ["scene=varying_g"],
     "heldout": ["scene=heldout"],
+    "heldout2": ["scene=heldout2"],
 }
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 

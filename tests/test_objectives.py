@@ -23,6 +23,7 @@ from omegaconf import OmegaConf
 from nrt.cli.checks import check_mode, check_objectives
 from nrt.errors import ConfigError
 from nrt.losses.boundary import BoundaryObjective
+from nrt.losses.extinction_prior import ExtinctionPrior
 from nrt.losses.objective import Objective, WeightSchedule, build_objectives
 from nrt.losses.observation import ObservationObjective
 from nrt.losses.photo import PhotoObjective
@@ -31,7 +32,10 @@ from nrt.losses.transport import TransportObjective
 from nrt.losses.vre import VREObjective
 
 PAPER = "experiment=rte_paper"
-SPLIT_UNITS = {"photo": PhotoObjective, "transport": TransportObjective}
+SPLIT_UNITS = {"photo": PhotoObjective, "transport": TransportObjective,
+               "extinction_prior": ExtinctionPrior}
+LEGACY_UNITS = ("photo", "transport", "rte", "bc", "obs", "vre")
+"""The units of checkpoints written before ``losses.objectives`` chose them."""
 PAPER_UNITS = {"rte": RTEObjective, "bc": BoundaryObjective, "obs": ObservationObjective,
                "vre": VREObjective}
 
@@ -78,8 +82,8 @@ def test_stages_without_units_have_no_objectives_to_check(stage):
 
 
 @pytest.mark.parametrize(("stage", "built"), [
-    ("rte", ["photo", "transport"]),
-    ("forward", ["transport"]),  # the photo objective trains the medium alone: left out
+    ("rte", ["photo", "transport", "extinction_prior"]),
+    ("forward", ["transport"]),  # the photo objective and the prior train the medium alone
     ("rte_paper", ["rte", "bc", "obs", "vre"]),
     ("forward_paper", ["rte", "bc", "obs", "vre"]),
 ])
@@ -114,11 +118,11 @@ def test_a_new_unit_is_a_class_and_a_config_entry(tmp_path: Path):
     model = build("stage=rte", "+losses.objectives.again._target_="
                   "nrt.losses.transport.TransportObjective",
                   "+losses.objectives.again._partial_=true", "+losses.weights.again=0.5")
-    assert list(model.objectives) == ["photo", "transport", "again"]
+    assert list(model.objectives) == ["photo", "transport", "extinction_prior", "again"]
     assert isinstance(model.objectives["again"], TransportObjective)
     assert model.objectives["again"].weight(0, 1.0) == 0.5
     loaded = reload(model, dict(model.hparams), tmp_path / "again.ckpt")
-    assert list(loaded.objectives) == ["photo", "transport", "again"]
+    assert list(loaded.objectives) == ["photo", "transport", "extinction_prior", "again"]
 
 
 def reload(model, hparams: dict, path: Path):
@@ -138,11 +142,14 @@ def test_a_checkpoint_from_before_the_objectives_were_configs_loads(tmp_path: Pa
     overrides, units = STAGES[stage]
     model = build(*overrides)
     new = dict(model.hparams)
+    then = {n: u for n, u in units.items() if n in LEGACY_UNITS}  # the units of that time
     old = {k: v for k, v in new.items() if k != "objectives"}
-    for name, hparams in (("new", new), ("old", old)):
+    old["weights"] = {n: w for n, w in new["weights"].items() if n in then}
+    for name, hparams, expected in (("new", new, units), ("old", old, then)):
         loaded = reload(model, hparams, tmp_path / f"{name}.ckpt")
-        assert {n: type(u) for n, u in loaded.objectives.items()} == units
-        assert dict(loaded.hparams)["objectives"] == new["objectives"]
+        assert {n: type(u) for n, u in loaded.objectives.items()} == expected
+        assert dict(loaded.hparams)["objectives"] == {
+            n: c for n, c in new["objectives"].items() if n in expected}
 
 
 def test_a_constant_weight_holds_at_every_step_and_progress():
@@ -175,7 +182,7 @@ def test_a_weight_that_is_neither_number_nor_ramp_is_refused(value):
         WeightSchedule(value, key="losses.weights.photo")
 
 
-FACTORIES = {name: functools.partial(unit) for name, unit in SPLIT_UNITS.items()}
+FACTORIES = {name: functools.partial(SPLIT_UNITS[name]) for name in ("photo", "transport")}
 
 
 def test_build_objectives_keeps_the_weights_order_and_the_warm_ups():

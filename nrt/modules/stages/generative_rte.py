@@ -166,6 +166,10 @@ class GenerativeRTEModule(SplitRTEModule):
         return (self.medium.voxels_for(self.density_for(code), code),
                 self.light.member(member, code.detach()))
 
+    def fresh_voxels(self) -> list:
+        """Every member's medium composed anew (see the split stage's)."""
+        return [self.member_scene(k)[0] for k in range(self.codes.shape[0])]
+
     # --------------------------------------------------------------- training
     def param_groups(self) -> list[dict]:
         return [*super().param_groups(),

@@ -230,6 +230,11 @@ class SplitRTEModule(RadiativeTransferStage):
         learned medium, the ground truth itself in forward mode."""
         return self.medium.voxels() if self.learns_medium else self.medium
 
+    def fresh_voxels(self) -> list:
+        """The learned media composed anew (a graph of their own, for an objective that
+        reads them after another's backward has freed the step's): one here, the medium."""
+        return [self.medium.voxels()]
+
     def inscatter(self, medium, light: ScatteredLightField, coefficients_grad: bool = False):
         """In-scattering of all light for the camera rays' VRE: the first scattering of the
         sky and the known lights of ``light``'s environment (with gradients to ``medium``)
