@@ -64,12 +64,13 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
     """``stage=ea`` then ``stage=rte`` through the CLI: stage 2 finds the EA checkpoint
     itself and says so, logs the time and loss of each objective and the property MSEs from
     step 0, and moves the medium toward the truth. Measured at the tiny preset (two
-    training skies, 900 steps, stage-2 seeds 0-2 from one EA run, 2026-11-24): end/start
-    MSE sigma_t 0.498-0.510 (18.70 -> 9.30-9.53), sigma_a 0.31-0.34, g 0.02-0.06, held-out
-    PSNR 35.39-35.44 dB. The seeds spread by 0.012 in the sigma_t ratio, so the bound 0.6
-    lies eight spreads above the worst seed and under the issue's two thirds (an
-    improvement by at least a third). Under one sky the same runs ended at 0.80-0.81
-    (docs/stage2.md, "Several skies")."""
+    training skies, the extinction prior, 900 steps, stage-2 seeds 0-2 from one EA run,
+    2026-11-24): end/start MSE sigma_t 0.523-0.539 (18.70 -> 9.78-10.07), sigma_a
+    0.31-0.32, g 0.05-0.10, held-out PSNR 35.40-35.44 dB. The seeds spread by 0.016 in the
+    sigma_t ratio, so the bound 0.6 lies four spreads above the worst seed and under the
+    issue's two thirds (an improvement by at least a third). Without the prior the same
+    runs ended at 0.498-0.510, under one sky at 0.80-0.81 (docs/stage2.md, "Several skies",
+    "Dense cores")."""
     out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"
