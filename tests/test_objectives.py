@@ -247,3 +247,12 @@ def test_nrt_train_refuses_an_objective_config_before_anything_is_built(override
     with pytest.raises(ConfigError, match=message):
         check_objectives(cfg)
         check_mode(cfg)
+
+
+def test_the_extinction_prior_refuses_a_stage_without_voxels():
+    """The extinction prior reads the split stage's voxel medium; given to the paper's
+    formulation by config it stops with an error naming its key."""
+    model = build("stage=rte", PAPER)
+    prior = ExtinctionPrior("extinction_prior", WeightSchedule(1.0))
+    with pytest.raises(ConfigError, match=r"losses\.weights\.extinction_prior"):
+        prior.loss(model, {}, [])
