@@ -159,16 +159,21 @@ class GenerativeRTEModule(SplitRTEModule):
         dens = self.ea.density_of_encoding(self.ea_encoding(), code)
         return dens.reshape(r, r, r, 1).clamp_min(0.0)
 
-    def member_scene(self, member: int):
-        """Member ``member``'s medium (voxels, differentiable in the decoder and the code) and
-        light (the code without gradient: the light field does not move the codes)."""
+    def member_medium(self, member: int):
+        """Member ``member``'s medium: voxels, differentiable in the decoder and the code."""
         code = self.codes[member]
-        return (self.medium.voxels_for(self.density_for(code), code),
-                self.light.member(member, code.detach()))
+        return self.medium.voxels_for(self.density_for(code), code)
+
+    def member_scene(self, member: int):
+        """Member ``member``'s medium (:meth:`member_medium`) and light (the code without
+        gradient: the light field does not move the codes)."""
+        return (self.member_medium(member),
+                self.light.member(member, self.codes[member].detach()))
 
     def fresh_voxels(self) -> list:
-        """Every member's medium composed anew (see the split stage's)."""
-        return [self.member_scene(k)[0] for k in range(self.codes.shape[0])]
+        """Every member's medium composed anew (see the split stage's); their lights are
+        not decoded."""
+        return [self.member_medium(k) for k in range(self.codes.shape[0])]
 
     # --------------------------------------------------------------- training
     def param_groups(self) -> list[dict]:
