@@ -1,0 +1,106 @@
+"""Where a recovered medium's sigma_t error sits: by the true extinction, against grid floors.
+
+For each run folder (a stage-2 run's ``medium_grids.npz``, or an EA run's grey
+``density_grid.npz`` taken as sigma_t in every channel) the sigma_t MSE x100 on the ground
+truth's grid (over cells and RGB, as ``val/mse_sigma_t_x100``), then per bin of the true
+extinction (its channel mean): the share of the cells, the share of the squared error, the
+mean signed error (bias) and its rms; and the share of the error in *inflated* cells, where
+the estimate exceeds twice the truth plus one (stage 1's spikes, docs/stage2.md). ``--floor
+R`` adds the same row for the truth itself resampled to R^3 cells and back (trilinear): the
+least error a medium on that grid can have, and where it sits. The dataset is the one the
+first run's ``run.json`` names, or ``--dataset``.
+
+    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--bins 0.5,2,5]
+        [--dataset outputs/datasets/<name>]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nrt.data.grids import load_property_grids, resample_grids
+
+
+def truth_grids(dataset: Path) -> dict[str, np.ndarray]:
+    """The dataset's ground-truth property grids as float64 arrays."""
+    grids = load_property_grids(dataset / "ground_truth.npz")
+    return {k: np.asarray(v, dtype=np.float64) for k, v in grids.items() if k != "bbox"}
+
+
+def run_extinction(run: Path, resolution: int) -> np.ndarray:
+    """A run's sigma_t on ``resolution``^3 cells, (..., 3): the stage-2 export's, or the EA
+    density broadcast over RGB."""
+    if (run / "medium_grids.npz").exists():
+        grids = resample_grids(load_property_grids(run / "medium_grids.npz"), resolution)
+        return np.asarray(grids["sigma_a"] + grids["sigma_s"], dtype=np.float64)
+    if (run / "density_grid.npz").exists():
+        with np.load(run / "density_grid.npz") as data:
+            density = data["density"].astype(np.float32)
+        grey = {"sigma_a": np.zeros((*density.shape, 3), np.float32),
+                "sigma_s": np.repeat(density[..., None], 3, -1),
+                "g": np.zeros(density.shape, np.float32)}
+        return np.asarray(resample_grids(_tensors(grey), resolution)["sigma_s"], np.float64)
+    raise SystemExit(f"{run} has neither medium_grids.npz (a stage-2 run) nor density_grid.npz "
+                     "(an EA run); pass a run folder of nrt-train.")
+
+
+def _tensors(grids: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    return {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in grids.items()}
+
+
+def error_row(estimate: np.ndarray, truth: np.ndarray, edges: list[float]) -> list[str]:
+    """Markdown cells: the MSE x100, the inflated cells' error share, then per bin of the
+    true extinction (channel mean) its cell share, error share, bias and rms."""
+    squared = ((estimate - truth) ** 2).mean(-1)
+    total = squared.sum()
+    true_mean = truth.mean(-1)
+    inflated = (estimate.mean(-1) > 2 * true_mean + 1)
+    cells = [f"{100 * squared.mean():.3f}", f"{squared[inflated].sum() / total:.2f}"]
+    for lo, hi in itertools.pairwise(edges):
+        inside = (true_mean >= lo) & (true_mean < hi)
+        if not inside.any():
+            cells.append("-")
+            continue
+        diff = (estimate - truth)[inside]
+        cells.append(f"{inside.mean():.3f} / {squared[inside].sum() / total:.2f} / "
+                     f"{diff.mean():+.3f} / {np.sqrt((diff ** 2).mean()):.3f}")
+    return cells
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--dataset", type=Path, default=None)
+    parser.add_argument("--floor", type=int, action="append", default=[],
+                        help="grid resolution R: the truth resampled to R^3 and back")
+    parser.add_argument("--bins", default="0.5,2,5", help="inner edges of the true sigma_t bins")
+    args = parser.parse_args()
+    dataset = args.dataset
+    if dataset is None:
+        dataset = Path(json.loads((args.runs[0] / "run.json").read_text())["dataset_dir"])
+    truth = truth_grids(dataset)
+    true_t = truth["sigma_a"] + truth["sigma_s"]
+    resolution = true_t.shape[0]
+    edges = [0.0, *(float(b) for b in args.bins.split(",")), float("inf")]
+    bins = [f"[{lo:g}, {hi:g})" for lo, hi in itertools.pairwise(edges)]
+    print(f"dataset {dataset} ({resolution}^3); per bin of the true sigma_t: "
+          "cells / error share / bias / rms")
+    print("| medium | sigma_t MSE x100 | inflated share | " + " | ".join(bins) + " |")
+    print("|---|---:|---:|" + "---:|" * len(bins))
+    for run in args.runs:
+        print(f"| {run} | " + " | ".join(error_row(run_extinction(run, resolution), true_t, edges))
+              + " |")
+    for r in args.floor:
+        back = resample_grids(resample_grids(_tensors(truth), r), resolution)
+        floor_t = np.asarray(back["sigma_a"] + back["sigma_s"], dtype=np.float64)
+        print(f"| truth on {r}^3 (floor) | " + " | ".join(error_row(floor_t, true_t, edges)) + " |")
+
+
+if __name__ == "__main__":
+    main()
