@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from nrt.data.grids import load_property_grids, resample_grids
+from nrt.physics.volume import resample_cells
 
 
 def truth_grids(dataset: Path) -> dict[str, np.ndarray]:
@@ -41,11 +42,9 @@ def run_extinction(run: Path, resolution: int) -> np.ndarray:
         return np.asarray(grids["sigma_a"] + grids["sigma_s"], dtype=np.float64)
     if (run / "density_grid.npz").exists():
         with np.load(run / "density_grid.npz") as data:
-            density = data["density"].astype(np.float32)
-        grey = {"sigma_a": np.zeros((*density.shape, 3), np.float32),
-                "sigma_s": np.repeat(density[..., None], 3, -1),
-                "g": np.zeros(density.shape, np.float32)}
-        return np.asarray(resample_grids(_tensors(grey), resolution)["sigma_s"], np.float64)
+            density = torch.from_numpy(data["density"].astype(np.float32))[..., None]
+        grey = resample_cells(density, resolution).clamp_min(0).double().numpy()
+        return np.repeat(grey, 3, -1)
     raise SystemExit(f"{run} has neither medium_grids.npz (a stage-2 run) nor density_grid.npz "
                      "(an EA run); pass a run folder of nrt-train.")
 
