@@ -7,11 +7,14 @@ extinction (its channel mean): the share of the cells, the share of the squared 
 mean signed error (bias) and its rms; and the share of the error in *inflated* cells, where
 the estimate exceeds twice the truth plus one (stage 1's spikes, docs/stage2.md). ``--floor
 R`` adds the same row for the truth itself resampled to R^3 cells and back (trilinear): the
-least error a medium on that grid can have, and where it sits. The dataset is the one the
-first run's ``run.json`` names, or ``--dataset``.
+least error a medium on that grid can have, and where it sits. ``--by depth`` bins the
+cells by their true optical depth from outside the box instead (:func:`depth_from_outside`:
+the least, over the six axis directions, of the truth's extinction integrated from the box
+face to the cell's centre): how deep the light and the cameras must reach to see a cell's
+error. The dataset is the one the first run's ``run.json`` names, or ``--dataset``.
 
-    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--bins 0.5,2,5]
-        [--dataset outputs/datasets/<name>]
+    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--by extinction|depth]
+        [--bins 0.5,2,5] [--dataset outputs/datasets/<name>]
 """
 
 from __future__ import annotations
@@ -27,11 +30,29 @@ import torch
 from nrt.data.grids import load_property_grids, resample_grids
 from nrt.physics.volume import resample_cells
 
+BINS = {"extinction": "0.5,2,5", "depth": "1,3"}
+"""Default inner bin edges: of the true sigma_t (per unit length), of the optical depth."""
+
 
 def truth_grids(dataset: Path) -> dict[str, np.ndarray]:
-    """The dataset's ground-truth property grids as float64 arrays."""
+    """The dataset's ground-truth property grids (and its ``bbox``) as float64 arrays."""
     grids = load_property_grids(dataset / "ground_truth.npz")
-    return {k: np.asarray(v, dtype=np.float64) for k, v in grids.items() if k != "bbox"}
+    return {k: np.asarray(v, dtype=np.float64) for k, v in grids.items()}
+
+
+def depth_from_outside(sigma_t: np.ndarray, cell: np.ndarray) -> np.ndarray:
+    """Each cell's optical depth from outside the box, (Nz, Ny, Nx): the least over the six
+    axis directions of ``sigma_t`` (Nz, Ny, Nx, per unit length) integrated from the box
+    face to the cell's centre (half the cell's own), with ``cell`` the cell's edge lengths
+    (x, y, z) in world units."""
+    depths = []
+    for axis, length in zip((2, 1, 0), cell, strict=True):  # x is the last array axis
+        tau = sigma_t * length
+        for flip in (False, True):
+            t = np.flip(tau, axis) if flip else tau
+            inward = np.cumsum(t, axis) - 0.5 * t
+            depths.append(np.flip(inward, axis) if flip else inward)
+    return np.min(depths, axis=0)
 
 
 def run_extinction(run: Path, resolution: int) -> np.ndarray:
@@ -53,16 +74,19 @@ def _tensors(grids: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in grids.items()}
 
 
-def error_row(estimate: np.ndarray, truth: np.ndarray, edges: list[float]) -> list[str]:
-    """Markdown cells: the MSE x100, the inflated cells' error share, then per bin of the
-    true extinction (channel mean) its cell share, error share, bias and rms."""
+def error_row(estimate: np.ndarray, truth: np.ndarray, edges: list[float],
+              key: np.ndarray | None = None) -> list[str]:
+    """Markdown cells: the MSE x100, the inflated cells' error share, then per bin of
+    ``key`` (Nz, Ny, Nx; by default the true extinction's channel mean) its cell share,
+    error share, bias and rms."""
     squared = ((estimate - truth) ** 2).mean(-1)
     total = squared.sum()
     true_mean = truth.mean(-1)
+    key = true_mean if key is None else key
     inflated = (estimate.mean(-1) > 2 * true_mean + 1)
     cells = [f"{100 * squared.mean():.3f}", f"{squared[inflated].sum() / total:.2f}"]
     for lo, hi in itertools.pairwise(edges):
-        inside = (true_mean >= lo) & (true_mean < hi)
+        inside = (key >= lo) & (key < hi)
         if not inside.any():
             cells.append("-")
             continue
@@ -78,27 +102,37 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, default=None)
     parser.add_argument("--floor", type=int, action="append", default=[],
                         help="grid resolution R: the truth resampled to R^3 and back")
-    parser.add_argument("--bins", default="0.5,2,5", help="inner edges of the true sigma_t bins")
+    parser.add_argument("--by", choices=list(BINS), default="extinction",
+                        help="bin the cells by the true sigma_t or by the optical depth from "
+                             "outside the box")
+    parser.add_argument("--bins", default=None,
+                        help=f"inner bin edges (default {BINS})")
     args = parser.parse_args()
     dataset = args.dataset
     if dataset is None:
         dataset = Path(json.loads((args.runs[0] / "run.json").read_text())["dataset_dir"])
     truth = truth_grids(dataset)
+    bbox = truth.pop("bbox", np.array([[-1.0] * 3, [1.0] * 3]))
     true_t = truth["sigma_a"] + truth["sigma_s"]
     resolution = true_t.shape[0]
-    edges = [0.0, *(float(b) for b in args.bins.split(",")), float("inf")]
+    key = None
+    if args.by == "depth":
+        key = depth_from_outside(true_t.mean(-1), (bbox[1] - bbox[0]) / resolution)
+    edges = [0.0, *(float(b) for b in (args.bins or BINS[args.by]).split(",")), float("inf")]
     bins = [f"[{lo:g}, {hi:g})" for lo, hi in itertools.pairwise(edges)]
-    print(f"dataset {dataset} ({resolution}^3); per bin of the true sigma_t: "
+    what = "the true sigma_t" if args.by == "extinction" else "the true optical depth from outside"
+    print(f"dataset {dataset} ({resolution}^3); per bin of {what}: "
           "cells / error share / bias / rms")
     print("| medium | sigma_t MSE x100 | inflated share | " + " | ".join(bins) + " |")
     print("|---|---:|---:|" + "---:|" * len(bins))
     for run in args.runs:
-        print(f"| {run} | " + " | ".join(error_row(run_extinction(run, resolution), true_t, edges))
-              + " |")
+        print(f"| {run} | " + " | ".join(error_row(run_extinction(run, resolution), true_t, edges,
+                                                     key)) + " |")
     for r in args.floor:
         back = resample_grids(resample_grids(_tensors(truth), r), resolution)
         floor_t = np.asarray(back["sigma_a"] + back["sigma_s"], dtype=np.float64)
-        print(f"| truth on {r}^3 (floor) | " + " | ".join(error_row(floor_t, true_t, edges)) + " |")
+        print(f"| truth on {r}^3 (floor) | " + " | ".join(error_row(floor_t, true_t, edges, key))
+              + " |")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from benchmarks.medium_error import error_row
+from benchmarks.medium_error import depth_from_outside, error_row
 from nrt.metrics import property_mse
 
 
@@ -27,3 +27,22 @@ def test_error_row_matches_the_logged_metric_and_its_bins_partition_the_error() 
     bins = [c.split(" / ") for c in cells[2:] if c != "-"]
     assert abs(sum(float(b[0]) for b in bins) - 1) < 0.01  # cell shares, rounded to 3 digits
     assert abs(sum(float(b[1]) for b in bins) - 1) < 0.03  # error shares, rounded to 2 digits
+
+
+def test_depth_from_outside_is_the_nearest_face_s_optical_depth() -> None:
+    """A uniform sigma_t = 2 on 8^3 cells of edge 0.25 (x), 0.5 (y) and 1 (z): a cell's
+    depth is the least over the six faces of (cells before it + 1/2) x sigma_t x edge."""
+    sigma_t = np.full((8, 8, 8), 2.0)
+    depth = depth_from_outside(sigma_t, np.array([0.25, 0.5, 1.0]))
+    i = np.arange(8)
+    nearest = np.minimum(i, 7 - i) + 0.5
+    z, y, x = np.meshgrid(nearest, nearest, nearest, indexing="ij")
+    expected = np.minimum(np.minimum(2 * 0.25 * x, 2 * 0.5 * y), 2 * 1.0 * z)
+    assert np.allclose(depth, expected)
+    # a dense slab on the -x face: its own cells lie half a cell (12.5) deep, seen from -x;
+    # the cell behind it is reached from +x (6.5 cells of 0.5) sooner than through it (25.25)
+    sigma_t[:, :, 0] = 100.0
+    edge = np.array([0.25, 1.0, 1.0])
+    shielded = depth_from_outside(sigma_t, edge)
+    assert np.isclose(shielded[4, 4, 0], 100 * 0.25 / 2)
+    assert np.isclose(shielded[4, 4, 1], 6.5 * 2 * 0.25)
