@@ -112,6 +112,7 @@ def main() -> None:
     if dataset is None:
         dataset = Path(json.loads((args.runs[0] / "run.json").read_text())["dataset_dir"])
     truth = truth_grids(dataset)
+    # nrt writes the bbox with every ground truth; another tool's file gets the default box
     bbox = truth.pop("bbox", np.array([[-1.0] * 3, [1.0] * 3]))
     true_t = truth["sigma_a"] + truth["sigma_s"]
     resolution = true_t.shape[0]
