@@ -16,9 +16,9 @@ from omegaconf import DictConfig, OmegaConf
 from nrt.cli.common import CONFIG_DIR
 from nrt.errors import ConfigError
 
-ZERO_ALLOWED = ("light_degree", "sky_env_directions", "sky_phase_directions")
+ZERO_ALLOWED = ("light_degree", "sky_env_directions", "sky_phase_directions", "photo_twins")
 """Counts of ``budget`` for which 0 is meaningful (SH band 0 only; one of the two MIS
-strategies left out); every other count must be at least 1."""
+strategies left out; no photo ray with a twin); every other count must be at least 1."""
 
 FRACTIONS = ("light_warmup",)
 """Shares of a run in ``budget``, in [0, 1)."""

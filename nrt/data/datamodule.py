@@ -8,7 +8,10 @@ radiance) and ``background`` (``E(v)`` of the ray's environment), each (B, 3), a
 add ``view`` (index) and ``shape`` (H, W), and their ``env`` is one int. :class:`RayDataModule`
 reads one dataset; :class:`FamilyRayDataModule` the members of a scene family
 (``mode=generative``), whose batches add ``member`` (B,) (training: each ray's member;
-validation: the view's member, and ``view`` counts within it).
+validation: the view's member, and ``view`` counts within it). With ``twins`` > 0 the first
+``twins`` rays of a training batch each get a second ray through the same pixel, jittered
+independently: ``twin_origins``, ``twin_dirs``, ``twin_background`` (twins, 3), for an
+unbiased estimate of the squared error of a box-filtered pixel (nrt/losses/photo.py).
 """
 
 from __future__ import annotations
@@ -41,16 +44,19 @@ def environment_radiance(data: SceneDataset, env_index: torch.Tensor, dirs: torc
 class RandomRays(IterableDataset):
     """``steps`` batches of ``batch_size`` rays drawn uniformly over all pixels of all
     training images, each jittered uniformly inside its pixel (box-filter pixels).
-    ``members`` (N,): the family member of each image; batches then carry ``member``."""
+    ``members`` (N,): the family member of each image; batches then carry ``member``.
+    ``twins``: how many of a batch's first rays get a twin through the same pixel, its
+    jitter drawn from a generator of its own, so the batches' rays do not depend on it."""
 
     def __init__(self, data: SceneDataset, batch_size: int, steps: int, seed: int,
-                 members: torch.Tensor | None = None):
+                 members: torch.Tensor | None = None, twins: int = 0):
         self.data, self.batch_size, self.steps, self.seed = data, batch_size, steps, seed
-        self.members = members
+        self.members, self.twins = members, min(int(twins), batch_size)
         self.epoch = 0
 
     def __iter__(self):
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+        g_twin = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch + 7_919)
         self.epoch += 1
         n, h, w = self.data.images.shape[:3]
         for _ in range(self.steps):
@@ -65,6 +71,13 @@ class RandomRays(IterableDataset):
                      "background": environment_radiance(self.data, env, d), "env": env}
             if self.members is not None:
                 batch["member"] = self.members[img]
+            if self.twins:
+                k = self.twins
+                jitter = torch.rand(k, 2, generator=g_twin)
+                o, d = camera_rays(self.data.c2w[img[:k]], self.data.intrinsics,
+                                   col[:k] + jitter[:, 0], row[:k] + jitter[:, 1])
+                batch |= {"twin_origins": o, "twin_dirs": d,
+                          "twin_background": environment_radiance(self.data, env[:k], d)}
             yield batch
 
 
@@ -110,13 +123,14 @@ class HeldOutImages(IterableDataset):
 
 class RayDataModule(L.LightningDataModule):
     """Training rays from ``transforms_train.json``, validation on ``transforms_test.json``,
-    optionally only the frames lit by ``environments`` (names or positions)."""
+    optionally only the frames lit by ``environments`` (names or positions); ``twins``: how
+    many of a training batch's first rays get a twin (:class:`RandomRays`)."""
 
     def __init__(self, dataset_dir: str, batch_size: int = 4096, steps_per_epoch: int = 500,
                  val_views: int | None = None, seed: int = 0,
-                 environments: list[str | int] | None = None):
+                 environments: list[str | int] | None = None, twins: int = 0):
         super().__init__()
-        self.dataset_dir, self.environments = dataset_dir, environments
+        self.dataset_dir, self.environments, self.twins = dataset_dir, environments, twins
         self.batch_size, self.steps_per_epoch = batch_size, steps_per_epoch
         self.val_views, self.seed = val_views, seed
         self.train_data: SceneDataset | None = None
@@ -158,7 +172,8 @@ class RayDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         return DataLoader(RandomRays(self.train_data, self.batch_size, self.steps_per_epoch,
-                                     self.seed, self.train_members), batch_size=None)
+                                     self.seed, self.train_members, self.twins),
+                          batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(HeldOutImages(self.val_data, self.val_views, self.val_members),

@@ -4,9 +4,15 @@ against the photographs.
 
 Compared after ``log1p(x / radiance_scale)``, as stage 1 and the evaluation compare images
 (a linear MSE lets the few brightest pixels, the sun's glow through thin medium, decide
-the medium's gradient). The rendering is Monte Carlo (the sky's first scattering), so the
-square of one estimate is biased by its variance; with the presets' 32 samples per ray and
-4 shadow directions per sample that variance is small against the photos' own noise.
+the medium's gradient). A photographed pixel is the mean of the radiance over its footprint
+(box filter), and one jittered ray is a Monte Carlo estimate of that mean (so is the VRE's
+march: the sky's first scattering is sampled). The square of one estimate's error is biased
+by its variance, and so is its gradient: it rewards media whose radiance varies less inside
+a pixel, a pull toward blur at the pixel's scale that the data never asked for. With
+``photo_twins`` > 0 the first rays of the batch carry a twin through the same pixel
+(jittered and marched independently), and their error is the product of the two rays'
+errors, unbiased for the squared error of the pixel's mean (after the tonemap; Azinovic et
+al. 2019's estimator, nrt/losses/unbiased.py, with both rays differentiated).
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ TONEMAPS = ("log", "linear")
 
 RAY_KEYS = ("origins", "dirs", "background", "rgb")
 """What the photo objective reads of a ray batch."""
+TWIN_KEYS = ("twin_origins", "twin_dirs", "twin_background")
+"""The twin rays of a batch's first rays (nrt/data/datamodule.py), when it has them."""
 
 
 def check_tonemap(tonemap: str) -> None:
@@ -29,15 +37,28 @@ def check_tonemap(tonemap: str) -> None:
         raise ConfigError(f"losses.photo_tonemap must be 'log' or 'linear', got '{tonemap}'.")
 
 
-def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor | float,
-               tonemap: str = "log") -> torch.Tensor:
-    """Mean squared difference of pixels (R, 3) after ``log1p(x / scale)`` (``tonemap=log``)
-    or of ``x / scale`` (``linear``)."""
+def tonemapped(x: torch.Tensor, scale: torch.Tensor | float, tonemap: str) -> torch.Tensor:
+    """``log1p(x / scale)`` (``tonemap=log``, negative radiance clamped to 0) or ``x / scale``
+    (``linear``)."""
     if tonemap == "log":
-        return torch.mean((torch.log1p(rendered.clamp_min(0) / scale)
-                           - torch.log1p(photos.clamp_min(0) / scale)) ** 2)
+        return torch.log1p(x.clamp_min(0) / scale)
     check_tonemap(tonemap)
-    return torch.mean(((rendered - photos) / scale) ** 2)
+    return x / scale
+
+
+def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor | float,
+               tonemap: str = "log", twins: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean squared difference of pixels (R, 3) after the tonemap (:func:`tonemapped`).
+    ``twins`` (T, 3), T <= R: a second, independent estimate of the first T pixels; their
+    squares become the product of the two estimates' differences (unbiased for the square
+    of the mean's difference; it can be negative)."""
+    reference = tonemapped(photos, scale, tonemap)
+    error = tonemapped(rendered, scale, tonemap) - reference
+    if twins is None or len(twins) == 0:
+        return torch.mean(error ** 2)
+    t = len(twins)
+    twin_error = tonemapped(twins, scale, tonemap) - reference[:t]
+    return (torch.sum(error[:t] * twin_error) + torch.sum(error[t:] ** 2)) / error.numel()
 
 
 class PhotoObjective(Objective):
@@ -45,9 +66,10 @@ class PhotoObjective(Objective):
     ``vre_samples`` jittered strata through the medium, with the stage's in-scattering
     (``stage.inscatter``) of the light as the stage lets the photos read it
     (``stage.photo_light``: through the adjoint's leaf when that is on), against their
-    pixels (:func:`photo_loss`, ``photo_tonemap``). Over several scenes (a family's members,
-    or the training environments), each ray through its ``scene``'s, the mean over all
-    rays. It trains the medium only."""
+    pixels (:func:`photo_loss`, ``photo_tonemap``); the batch's twin rays, when it has them
+    (``photo_twins``), rendered too and paired with their first rays. Over several scenes (a
+    family's members, or the training environments), each ray through its ``scene``'s, the
+    mean over all rays. It trains the medium only."""
 
     families = True
     medium_only = True
@@ -55,17 +77,29 @@ class PhotoObjective(Objective):
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
         n = int(stage.hparams.samples["photo_rays"])
         rays = {key: batch[key][:n] for key in RAY_KEYS}
+        twins = {key: batch[key][:n] for key in TWIN_KEYS if key in batch}
         if len(scenes) == 1:
-            return self.scene_loss(stage, *scenes[0], rays)
+            return self.scene_loss(stage, *scenes[0], rays, twins)
+        t = len(twins["twin_dirs"]) if twins else 0
+        # a mask keeps the rays' order, so the twinned rays stay the first of each scene's
         return scene_mean(batch["scene"][:n].cpu(), lambda k, mask: self.scene_loss(
-            stage, *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()}))
+            stage, *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()},
+            {key: v[mask[:t].to(v.device)] for key, v in twins.items()}))
 
     @staticmethod
-    def scene_loss(stage, medium, light, rays: dict) -> torch.Tensor:
+    def scene_loss(stage, medium, light, rays: dict, twins: dict | None = None
+                   ) -> torch.Tensor:
         """The loss of the camera ``rays`` (``origins``, ``dirs``, ``background``, ``rgb``)
-        through ``medium`` lit by ``light``."""
+        through ``medium`` lit by ``light``; ``twins`` (``twin_origins``, ``twin_dirs``,
+        ``twin_background``): second rays through the pixels of the first of ``rays``."""
         read, coefficients_grad = stage.photo_light(light)
         source = stage.inscatter(medium, read, coefficients_grad)
+        samples = int(stage.hparams.samples["vre_samples"])
         pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
-                                int(stage.hparams.samples["vre_samples"]), source)
-        return photo_loss(pred, rays["rgb"], light.radiance_scale, stage.hparams.photo_tonemap)
+                                samples, source)
+        twin_pred = None
+        if twins:
+            twin_pred = render_view_rays(medium, twins["twin_origins"], twins["twin_dirs"],
+                                         twins["twin_background"], samples, source)
+        return photo_loss(pred, rays["rgb"], light.radiance_scale, stage.hparams.photo_tonemap,
+                          twin_pred)
