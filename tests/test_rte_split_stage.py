@@ -258,3 +258,36 @@ def test_several_environments_train_a_light_field_each(tmp_path):
     paper, paper_dm = build(tmp_path, *two_skies, "experiment=rte_paper")
     with pytest.raises(DatasetError, match="one environment"):
         fit(paper, paper_dm, 1)
+
+
+@pytest.mark.parametrize("skies", [1, 2])
+def test_the_photo_objective_renders_each_twin_with_its_first_ray(tmp_path, monkeypatch,
+                                                                  skies):
+    """``budget.rte.photo_twins=24`` of 64 photo rays: each step renders the 64 rays and
+    then the 24 twins, each twin through its own first ray's sky (under two skies, the
+    first rays of each sky's share; a pinhole twin leaves from its first ray's camera), and
+    trains with finite values."""
+    from nrt.losses import photo
+
+    environments = ([f"scene.environments.sky_seeds={list(range(skies))}",
+                     f"stage.environments={list(range(skies))}"] if skies > 1 else [])
+    model, dm = build(tmp_path, *environments, "budget.rte.photo_twins=24",
+                      "budget.rte.light_warmup=0.01")
+    renders: list[tuple[torch.Tensor, torch.Tensor]] = []
+    original = photo.render_view_rays
+
+    def spy(medium, origins, dirs, background, *args):
+        renders.append((origins, background))
+        return original(medium, origins, dirs, background, *args)
+
+    monkeypatch.setattr(photo, "render_view_rays", spy)
+    trains_finite(model, dm, 3)
+    assert renders and len(renders) % 2 == 0
+    firsts, twins = renders[0::2], renders[1::2]
+    steps = len(renders) // (2 * skies)
+    assert steps >= 1
+    assert sum(len(o) for o, _ in firsts) == 64 * steps
+    assert sum(len(o) for o, _ in twins) == 24 * steps
+    for (first, _), (twin, _) in zip(firsts, twins, strict=True):
+        assert 0 < len(twin) <= len(first)
+        torch.testing.assert_close(twin, first[:len(twin)], rtol=0, atol=0)

@@ -69,6 +69,13 @@ def check_budget(cfg: DictConfig) -> None:
         items = value if isinstance(value, list) else [value]
         if not items or not all(_is_count(item, least) for item in items):
             raise _count_error(key, value, least)
+    rte = budget.get("rte", {})
+    twins, rays = rte.get("photo_twins", 0), rte.get("photo_rays")
+    if rays is not None and twins > rays:
+        raise ConfigError(f"budget.rte.photo_twins={twins}: must be at most "
+                          f"budget.rte.photo_rays ({rays}), the photo rays a twin can pair "
+                          "with. Lower it, or set it to ${budget.rte.photo_rays} "
+                          "(ablation=photo_twins) to pair them all.")
     for key in RUN_COUNTS:
         if not _is_count(OmegaConf.select(cfg, key), 1):
             raise _count_error(key, OmegaConf.select(cfg, key), 1)

@@ -51,12 +51,12 @@ class RandomRays(IterableDataset):
     def __init__(self, data: SceneDataset, batch_size: int, steps: int, seed: int,
                  members: torch.Tensor | None = None, twins: int = 0):
         self.data, self.batch_size, self.steps, self.seed = data, batch_size, steps, seed
-        self.members, self.twins = members, min(int(twins), batch_size)
+        self.members, self.twins = members, max(0, min(int(twins), batch_size))
         self.epoch = 0
 
     def __iter__(self):
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
-        g_twin = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch + 7_919)
+        g_twin = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) ^ (1 << 40))
         self.epoch += 1
         n, h, w = self.data.images.shape[:3]
         for _ in range(self.steps):

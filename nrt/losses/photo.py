@@ -11,8 +11,12 @@ by its variance, and so is its gradient: it rewards media whose radiance varies 
 a pixel, a pull toward blur at the pixel's scale that the data never asked for. With
 ``photo_twins`` > 0 the first rays of the batch carry a twin through the same pixel
 (jittered and marched independently), and their error is the product of the two rays'
-errors, unbiased for the squared error of the pixel's mean (after the tonemap; Azinovic et
-al. 2019's estimator, nrt/losses/unbiased.py, with both rays differentiated).
+errors (Azinovic et al. 2019's estimator, nrt/losses/unbiased.py, with both rays
+differentiated): unbiased for the square of the mean tonemapped estimate's error. With the
+linear tonemap that is the box-filtered pixel's error exactly; with ``log`` the tonemap of
+a mean is not the mean of the tonemap, a second-order remainder (tests/test_photo_loss.py
+measures it at 2 % of the single ray's pull). Noise shared by both rays (the scattered
+light's cached uncollided part, the light field itself) is not removed.
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor
     """Mean squared difference of pixels (R, 3) after the tonemap (:func:`tonemapped`).
     ``twins`` (T, 3), T <= R: a second, independent estimate of the first T pixels; their
     squares become the product of the two estimates' differences (unbiased for the square
-    of the mean's difference; it can be negative)."""
+    of the mean tonemapped estimate's difference; it can be negative)."""
     reference = tonemapped(photos, scale, tonemap)
     error = tonemapped(rendered, scale, tonemap) - reference
     if twins is None or len(twins) == 0:
