@@ -26,6 +26,7 @@ import torch
 from nrt.errors import ConfigError
 from nrt.losses.objective import Objective, Scenes, scene_mean
 from nrt.modules.renderers.volume import render_view_rays
+from nrt.physics.tonemap import log_tonemap
 
 TONEMAPS = ("log", "linear")
 
@@ -45,7 +46,7 @@ def tonemapped(x: torch.Tensor, scale: torch.Tensor | float, tonemap: str) -> to
     """``log1p(x / scale)`` (``tonemap=log``, negative radiance clamped to 0) or ``x / scale``
     (``linear``)."""
     if tonemap == "log":
-        return torch.log1p(x.clamp_min(0) / scale)
+        return log_tonemap(x / scale)
     check_tonemap(tonemap)
     return x / scale
 
@@ -102,7 +103,7 @@ class PhotoObjective(Objective):
         pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
                                 samples, source)
         twin_pred = None
-        if twins:
+        if twins and len(twins["twin_dirs"]):  # a scene's share may hold no twinned ray
             twin_pred = render_view_rays(medium, twins["twin_origins"], twins["twin_dirs"],
                                          twins["twin_background"], samples, source)
         return photo_loss(pred, rays["rgb"], light.radiance_scale, stage.hparams.photo_tonemap,
