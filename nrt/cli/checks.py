@@ -76,6 +76,14 @@ def check_budget(cfg: DictConfig) -> None:
                           f"budget.rte.photo_rays ({rays}), the photo rays a twin can pair "
                           "with. Lower it, or set it to ${budget.rte.photo_rays} "
                           "(ablation=photo_twins) to pair them all.")
+    for name in ("photo_rays", "vre_rays"):  # the first rays of each batch; more are not there
+        wanted, batch = rte.get(name), rte.get("rays_per_batch")
+        if wanted is not None and batch is not None and wanted > batch:
+            raise ConfigError(f"budget.rte.{name}={wanted}: must be at most "
+                              f"budget.rte.rays_per_batch ({batch}), the rays a step draws "
+                              f"(the objective takes the first {name} of them). Raise "
+                              f"budget.rte.rays_per_batch with it, as "
+                              "conf/ablation/photo_rays_1024.yaml does.")
     for key in RUN_COUNTS:
         if not _is_count(OmegaConf.select(cfg, key), 1):
             raise _count_error(key, OmegaConf.select(cfg, key), 1)
