@@ -7,7 +7,11 @@ property MSEs x100 at step 0 and at the end, the end/start ratios, the held-out 
 photo objective's image, training seconds and steps. Every scene is reported, none chosen.
 
     python -m benchmarks.stage2_scenes [--scenes default,default_seed1,...] [--ea NAME=PATH ...]
-        [--preset cpu] [--out DIR] [override ...]
+        [--preset cpu] [--data OVERRIDE ...] [--out DIR] [override ...]
+
+``override``s go to stage 2 only; ``--data`` overrides (``--data scene.spp=512``) change the
+photos, so they go to the EA run trained first as well: give them with a new
+``NRT_OUTPUT_DIR``, whose newest EA runs are then those of the same photos.
 
 Scenes: ``default`` (the settings were chosen on it), ``default_seed1..3`` (the default
 scene drawn from other seeds), ``varying_g`` (a g field), ``heldout`` and ``heldout2``
@@ -39,6 +43,8 @@ def main() -> None:
     parser.add_argument("--scenes", default=",".join(SCENES))
     parser.add_argument("--ea", action="append", default=[], help="NAME=path/to/last.ckpt")
     parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--data", action="append", default=[],
+                        help="an override of the scene's photos (scene.spp=512), for both stages")
     parser.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "stage2")
     parser.add_argument("overrides", nargs="*", help="extra Hydra overrides for stage 2")
     args = parser.parse_args()
@@ -46,7 +52,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in args.scenes.split(","):
-        scene = SCENES[name]
+        scene = [*SCENES[name], *args.data]
         ckpt = given.get(name) or newest_checkpoint(name)
         if ckpt is None:
             ckpt = train("ea", output_dir(), args.preset, scene)[0] / "checkpoints" / "last.ckpt"
