@@ -291,3 +291,25 @@ def test_the_photo_objective_renders_each_twin_with_its_first_ray(tmp_path, monk
     for (first, _), (twin, _) in zip(firsts, twins, strict=True):
         assert 0 < len(twin) <= len(first)
         torch.testing.assert_close(twin, first[:len(twin)], rtol=0, atol=0)
+
+
+def test_a_sky_whose_share_of_the_batch_holds_no_twin_renders_none(tmp_path, monkeypatch):
+    """One twin among 64 photo rays under two skies: only the sky of the batch's first ray
+    has a twin, so each step renders three batches (both skies' rays, one twin), none of
+    them empty."""
+    from nrt.losses import photo
+
+    model, dm = build(tmp_path, "scene.environments.sky_seeds=[0,1]", "stage.environments=[0,1]",
+                      "budget.rte.photo_twins=1", "budget.rte.light_warmup=0.01")
+    sizes: list[int] = []
+    original = photo.render_view_rays
+
+    def spy(medium, origins, *args):
+        sizes.append(len(origins))
+        return original(medium, origins, *args)
+
+    monkeypatch.setattr(photo, "render_view_rays", spy)
+    trains_finite(model, dm, 3)
+    assert sizes and len(sizes) % 3 == 0, sizes
+    assert min(sizes) > 0, sizes
+    assert sum(sizes) == 65 * (len(sizes) // 3), sizes
