@@ -15,8 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from nrt.errors import ConfigError
-from nrt.losses.objective import Objective, Scenes
+from nrt.losses.objective import Objective, Scenes, fresh_voxels
 
 
 class ExtinctionPrior(Objective):
@@ -28,8 +27,5 @@ class ExtinctionPrior(Objective):
     medium_only = True
 
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        if not hasattr(stage, "fresh_voxels"):
-            raise ConfigError("losses.weights.extinction_prior: the extinction prior reads a "
-                              "voxel medium, which the split stage 2 has (stage=rte without "
-                              "experiment=rte_paper); remove it from this stage's objectives.")
-        return torch.stack([voxels.extinction.mean() for voxels in stage.fresh_voxels()]).mean()
+        return torch.stack([voxels.extinction.mean()
+                            for voxels in fresh_voxels(stage, self.name)]).mean()

@@ -141,3 +141,14 @@ def scene_mean(scenes: torch.Tensor,
         mask = scenes == k
         total = total + mask.float().mean() * loss_of(k, mask)
     return total
+
+
+def fresh_voxels(stage, name: str) -> list:
+    """The learned media of a voxel stage composed anew (its ``fresh_voxels()``), for the
+    priors on them; a stage without voxels (the paper's formulation) is refused naming
+    ``losses.weights.<name>``."""
+    if not hasattr(stage, "fresh_voxels"):
+        raise ConfigError(f"losses.weights.{name}: this prior reads a voxel medium, which the "
+                          "split stage 2 has (stage=rte without experiment=rte_paper); remove "
+                          "it from this stage's objectives.")
+    return stage.fresh_voxels()
