@@ -159,6 +159,8 @@ def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, n
     (("stage=rte", "init=none", "+losses.weights.foo=1"), "unknown objectives ['foo']"),
     (("stage=rte", "init=none", PAPER, "+losses.weights.photo=1"), "unknown objectives ['photo']"),
     (("stage=rte", "init=none", "losses.weights.photo=[1,2]"), "losses.weights.photo=[1, 2]"),
+    (("stage=rte", "init=none", PAPER, "ablation=extinction_tv"),
+     "losses.objectives.extinction_tv is a prior on a voxel medium"),
 ])
 def test_config_mistakes_are_refused_before_data(overrides, needle):
     """The checks nrt-train makes before it renders or loads data (the budget's counts,
@@ -166,7 +168,7 @@ def test_config_mistakes_are_refused_before_data(overrides, needle):
     key, which the CLI prints as ``nrt: error:`` with status 2 (the test above)."""
     from hydra.errors import InstantiationException
 
-    from nrt.cli.checks import check_budget
+    from nrt.cli.checks import check_budget, check_objectives
     from nrt.cli.train import resolve_ea_checkpoint
     from nrt.errors import NrtError
 
@@ -174,6 +176,7 @@ def test_config_mistakes_are_refused_before_data(overrides, needle):
     with pytest.raises(NrtError, match=re.escape(needle)):
         try:
             check_budget(cfg)
+            check_objectives(cfg)
             resolve_ea_checkpoint(cfg)
             hydra.utils.instantiate(cfg.model, _convert_="all")
         except InstantiationException as exc:  # as nrt.cli.common.run_app unwraps it

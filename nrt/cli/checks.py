@@ -97,7 +97,8 @@ def check_objectives(cfg: DictConfig) -> dict[str, type]:
     ``losses.objectives`` names, by name (none for a stage without objectives); an entry
     without ``_target_``, whose ``_target_`` cannot be imported or is no objective, or
     without ``_partial_: true`` is refused naming its key, before anything is built.
-    Which objectives have weights the stage checks as it builds them."""
+    A prior on voxels given to a stage without them (the paper's formulation) is refused
+    too. Which objectives have weights the stage checks as it builds them."""
     from hydra.utils import get_object
 
     from nrt.losses.objective import objective_class
@@ -123,6 +124,14 @@ def check_objectives(cfg: DictConfig) -> dict[str, type]:
         if entry.get("_partial_") is not True:
             raise ConfigError(f"{key} lacks `_partial_: true`: the stage builds the objective "
                               "itself, with its name and weight schedule.")
+    model = OmegaConf.select(cfg, "model._target_")
+    priors = [name for name, unit in classes.items() if unit.reads_voxels]
+    if priors and model and not hasattr(get_object(model), "fresh_voxels"):
+        raise ConfigError(f"losses.objectives.{priors[0]} is a prior on a voxel medium, which "
+                          f"this stage ({model}) does not have: the paper's formulation "
+                          "(experiment=rte_paper) learns a SIREN medium. Drop it "
+                          f"(~losses.objectives.{priors[0]} ~losses.weights.{priors[0]}, or "
+                          "the ablation that adds it), or train the split stage 2 (stage=rte).")
     return classes
 
 

@@ -25,6 +25,7 @@ class ExtinctionPrior(Objective):
 
     families = True
     medium_only = True
+    reads_voxels = True
 
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
         return torch.stack([voxels.extinction.mean()

@@ -46,6 +46,7 @@ class ExtinctionTV(Objective):
 
     families = True
     medium_only = True
+    reads_voxels = True
 
     def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
         return torch.stack([total_variation(voxels.extinction, voxels.bbox)

@@ -75,6 +75,9 @@ class Objective:
     """Whether it trains the medium alone: the split stage starts it after the light
     field's warm-up (``light_warmup``), and forward mode (the medium is the ground truth)
     leaves it out."""
+    reads_voxels: bool = False
+    """Whether it reads the stage's voxel medium (:func:`fresh_voxels`): a prior that only
+    the split stage 2 can have."""
 
     def __init__(self, name: str, schedule: WeightSchedule):
         self.name, self.schedule = name, schedule
