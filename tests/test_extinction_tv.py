@@ -9,14 +9,15 @@ import torch
 
 from nrt.losses.extinction_tv import EPS, ExtinctionTV, total_variation
 from nrt.losses.objective import WeightSchedule
+from nrt.physics.volume import cell_centres
 
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
 
 def field(r: int, fn) -> torch.Tensor:
-    """``fn(z, y, x)`` at the centres of r^3 cells of BOX, as (r, r, r, 1)."""
-    c = (torch.arange(r, dtype=torch.float64) + 0.5) / r * 2 - 1
-    z, y, x = torch.meshgrid(c, c, c, indexing="ij")
+    """``fn(z, y, x)`` at the centres of r^3 cells of BOX (:func:`cell_centres`, the grid
+    convention the medium uses), as (r, r, r, 1)."""
+    x, y, z = cell_centres(r, BOX.double()).unbind(-1)
     return fn(z, y, x).unsqueeze(-1)
 
 
