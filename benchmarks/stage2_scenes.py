@@ -14,9 +14,9 @@ photos, so they go to the EA run trained first as well: give them with a new
 ``NRT_OUTPUT_DIR``, whose newest EA runs are then those of the same photos.
 
 Scenes: ``default`` (the settings were chosen on it), ``default_seed1..3`` (the default
-scene drawn from other seeds), ``varying_g`` (a g field), ``heldout`` and ``heldout2``
-(explicit elements lists, each written once and never tuned on; the second after the
-extinction prior was chosen).
+scene drawn from other seeds), ``varying_g`` (a g field), ``heldout``, ``heldout2`` and
+``heldout3`` (explicit elements lists, each written once and never tuned on; the second
+after the extinction prior was chosen, the third after the total-variation prior).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ SCENES = {
     "varying_g": ["scene=varying_g"],
     "heldout": ["scene=heldout"],
     "heldout2": ["scene=heldout2"],
+    "heldout3": ["scene=heldout3"],
 }
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
