@@ -13,8 +13,8 @@ the channel mean and ``grad`` forward differences over the cell size (scene leng
 so the loss is in inverse squared length and does not change with the grid's
 resolution). ``eps`` (the same units) keeps the gradient of the square root finite where
 the extinction is flat. Off by default (``ablation=extinction_tv`` adds it at 1e-5): on the
-`cpu` preset it lowers `heldout2`'s end by 10-15 % and costs `default` 2 % (docs/stage2.md,
-"A total-variation prior").
+`cpu` preset it lowers `heldout2`'s end by 10-15 % and changes five other scenes by -1 to
++2 % (docs/stage2.md, "A total-variation prior", "A third blind scene").
 """
 
 from __future__ import annotations
