@@ -247,6 +247,40 @@ def test_oracle_start_bakes_the_true_extinction(tmp_path):
     assert isinstance(refused.value.__cause__, ConfigError)
 
 
+def test_oracle_start_blends_the_truth_with_the_ea_density(tmp_path):
+    """``init=oracle init.truth_share=a``: the start ``EA^(1 - a) truth^a`` on the density's
+    cells (each side floored at 1e-4), the EA density read from ``init.ea_ckpt``; a share
+    outside [0, 1], or one below 1 without an EA checkpoint, is refused naming the key."""
+    import hydra
+    import lightning
+    from conftest import compose_config
+
+    from nrt.modules.fields.voxel_medium import bake
+    from nrt.modules.stages.ea import load_ea_field
+    from nrt.physics.volume import sample_grid
+
+    ea_cfg = compose_config("train", ["stage=ea", "preset=tiny"])
+    ea_model = hydra.utils.instantiate(ea_cfg.model, _convert_="all")
+    ckpt = tmp_path / "ea.ckpt"
+    torch.save({"state_dict": ea_model.state_dict(), "hyper_parameters": dict(ea_model.hparams),
+                "pytorch-lightning_version": lightning.__version__}, ckpt)
+    model, dm = build(tmp_path, "init=oracle", f"init.ea_ckpt={ckpt}", "init.truth_share=0.5")
+    fit(model, dm, 1)
+    truth = dm.ground_truth
+    extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
+    bbox = model.medium.bbox
+    true_cells = bake(lambda x: sample_grid(extinction, x, bbox)[..., 0], 8, bbox)
+    ea_cells = bake(load_ea_field(str(ckpt)).density, 8, bbox)
+    want = torch.sqrt(true_cells.clamp_min(1e-4) * ea_cells.clamp_min(1e-4))
+    torch.testing.assert_close(model.medium.density, want)
+    assert not torch.allclose(want, true_cells) and not torch.allclose(want, ea_cells)
+    for bad, key in ((["init.truth_share=1.5"], "init.truth_share=1.5"),
+                     (["init.truth_share=0.5"], "init.ea_ckpt")):
+        with pytest.raises(InstantiationException, match=key.replace(".", r"\.")) as refused:
+            build(tmp_path, "init=oracle", *bad)
+        assert isinstance(refused.value.__cause__, ConfigError)
+
+
 def test_several_environments_train_a_light_field_each(tmp_path):
     """``stage.environments=[0,1]`` on a scene under two skies: the medium is shared and each
     sky has its own light field, scaled by that sky's mean radiance and holding that sky's

@@ -63,8 +63,15 @@ def resolve_ea_checkpoint(cfg: DictConfig, recorded: str | None = None) -> str |
     into ``cfg.init.ea_ckpt``; None for stages that do not start from one.
 
     ``init.ea_ckpt`` when given; else ``recorded`` (the one a resumed run started from);
-    else the newest EA run of the same scene that saved a checkpoint."""
-    if OmegaConf.select(cfg, "model.density.source") != "ea":
+    else the newest EA run of the same scene that saved a checkpoint. ``init=oracle`` needs
+    one only to blend it with the truth (``init.truth_share`` < 1)."""
+    source = OmegaConf.select(cfg, "model.density.source")
+    if source == "oracle":
+        from nrt.modules.stages.rte_split import truth_share
+
+        if truth_share(cfg.model.density) == 1.0:
+            return None
+    elif source != "ea":
         return None
     if cfg.init.ea_ckpt:
         from nrt.modules.stages.ea import check_checkpoint_file

@@ -85,6 +85,29 @@ COUPLING = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
 (off by default; docs/stage2.md, "Coupling")."""
 
 
+BLEND_FLOOR = 1e-4
+"""Extinction (per unit length) below which a density counts as this floor in
+:func:`geometric_blend`, so that an empty cell of either side does not zero the blend."""
+
+
+def truth_share(density: Mapping) -> float:
+    """``init.truth_share`` of an ``init=oracle`` start, in [0, 1] (1, the truth alone, when
+    unset); a clear error otherwise."""
+    share = density.get("truth_share", 1.0)
+    share = 1.0 if share is None else float(share)
+    if not 0.0 <= share <= 1.0:
+        raise ConfigError(f"init.truth_share={share}: the truth's share of the start (init=oracle) "
+                          "must lie in [0, 1]; 1 starts from the truth, 0.5 halfway from the EA "
+                          "density to it.")
+    return share
+
+
+def geometric_blend(ea: torch.Tensor, truth: torch.Tensor, share: float) -> torch.Tensor:
+    """``ea^(1 - share) truth^share``, each floored at :data:`BLEND_FLOOR`: the start halfway
+    (``share`` 0.5) between two extinctions in the log space the medium modulates."""
+    return ea.clamp_min(BLEND_FLOOR) ** (1.0 - share) * truth.clamp_min(BLEND_FLOOR) ** share
+
+
 class SplitRTEModule(RadiativeTransferStage):
     """A scattered-light field and a voxelised medium (by default the SH grid and the voxel
     medium) on the photo and transport objectives. The objectives and renderings take the
@@ -144,6 +167,9 @@ class SplitRTEModule(RadiativeTransferStage):
             self.register_buffer("adjoint_source", torch.zeros_like(self.light.coefficients))
         self._photo_coefficients: torch.Tensor | None = None
         self._ea_ckpt = density.get("ea_ckpt")
+        if density["source"] == "oracle" and truth_share(density) < 1.0 and not self._ea_ckpt:
+            raise ConfigError("init=oracle with init.truth_share < 1 blends the truth with an EA "
+                              "run's density: pass init.ea_ckpt=<path/to/last.ckpt>.")
         self._baked = False
         self._uncollided_fresh = False
 
@@ -192,21 +218,33 @@ class SplitRTEModule(RadiativeTransferStage):
 
     def bake_density(self) -> None:
         """Bake the EA run's density into the medium, or with ``init=oracle`` the dataset's
-        true extinction (its channel mean): where stage 2 goes from the truth."""
-        if self.hparams.density["source"] == "oracle":
-            truth = self.datamodule().ground_truth
-            if truth is None:
-                raise DatasetError("init=oracle needs the dataset's ground_truth.npz (the true "
-                                   "extinction it starts from); this dataset has none.")
-            true_extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
-            bbox = self.medium.bbox
-            self.medium.set_density(
-                lambda x: sample_grid(true_extinction.to(x.device), x, bbox)[..., 0])
+        true extinction (its channel mean): where stage 2 goes from the truth; with
+        ``init.truth_share`` a < 1, the geometric blend ``EA^(1 - a) truth^a``: how the end
+        depends on the start (docs/stage2.md, "The start decides the end")."""
+        if self.hparams.density["source"] != "oracle":
+            ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
+            self.medium.set_density(ea.density)
+            log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
+            return
+        truth = self.datamodule().ground_truth
+        if truth is None:
+            raise DatasetError("init=oracle needs the dataset's ground_truth.npz (the true "
+                               "extinction it starts from); this dataset has none.")
+        true_extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
+        bbox = self.medium.bbox
+
+        def true_density(x: torch.Tensor) -> torch.Tensor:
+            return sample_grid(true_extinction.to(x.device), x, bbox)[..., 0]
+
+        share = truth_share(self.hparams.density)
+        if share == 1.0:
+            self.medium.set_density(true_density)
             log.info("Stage 2 modulates the TRUE extinction (init=oracle, a diagnostic)")
             return
-        ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
-        self.medium.set_density(ea.density)
-        log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
+        ea = load_ea_field(self._ea_ckpt).to(bbox.device)
+        self.medium.set_density(lambda x: geometric_blend(ea.density(x), true_density(x), share))
+        log.info("Stage 2 modulates EA^%.2f x TRUTH^%.2f (init=oracle, a diagnostic), the EA "
+                 "density of %s", 1.0 - share, share, self._ea_ckpt)
 
     def param_groups(self) -> list[dict]:
         """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
