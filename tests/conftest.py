@@ -133,6 +133,23 @@ def resume_in_place(out: Path, data_root: Path, run: Path, *overrides: str,
     return torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
 
 
+def single_scene_ea_checkpoint(path: Path) -> Path:
+    """A single-scene EA checkpoint at the tiny preset (an EAModule's state and
+    hyperparameters, as Lightning writes them), without training one."""
+    import hydra
+    import lightning
+    import torch
+
+    from nrt.modules.stages.ea import EAModule
+
+    cfg = compose_config("train", ["preset=tiny"])
+    module = hydra.utils.instantiate(cfg.model, _convert_="all")
+    assert isinstance(module, EAModule)
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": lightning.__version__}, path)
+    return path
+
+
 def read_csv_metrics(run_dir: Path) -> list[dict]:
     with open(run_dir / "csv" / "metrics.csv") as f:
         return list(csv.DictReader(f))

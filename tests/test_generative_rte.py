@@ -25,6 +25,7 @@ from conftest import (
     SMALL_FAMILY,
     compose_config,
     refusal,
+    single_scene_ea_checkpoint,
 )
 from lightning.pytorch.callbacks import ModelCheckpoint
 from omegaconf import OmegaConf
@@ -39,7 +40,6 @@ from nrt.data.grids import load_property_grids
 from nrt.errors import ConfigError, NrtError
 from nrt.losses.objective import scene_mean
 from nrt.metrics import property_mse
-from nrt.modules.stages.ea import EAModule
 from nrt.modules.stages.generative_ea import load_generative_ea
 from nrt.modules.stages.generative_rte import GenerativeRTEModule
 from nrt.physics.phase import G_MAX
@@ -298,17 +298,6 @@ def test_each_code_reconstructs_its_own_member_best(trained):
 
 
 # -------------------------------------------------------------- config errors
-
-
-def single_scene_ea_checkpoint(path: Path) -> Path:
-    """A single-scene EA checkpoint (an EAModule's state and hyperparameters, as Lightning
-    writes them), without training one."""
-    cfg = compose_config("train", ["preset=tiny"])
-    module = hydra.utils.instantiate(cfg.model, _convert_="all")
-    assert isinstance(module, EAModule)
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "pytorch-lightning_version": L.__version__}, path)
-    return path
 
 
 @pytest.mark.parametrize("overrides, message", [

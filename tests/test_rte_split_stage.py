@@ -251,19 +251,13 @@ def test_oracle_start_blends_the_truth_with_the_ea_density(tmp_path):
     """``init=oracle init.truth_share=a``: the start ``EA^(1 - a) truth^a`` on the density's
     cells (each side floored at 1e-4), the EA density read from ``init.ea_ckpt``; a share
     outside [0, 1], or one below 1 without an EA checkpoint, is refused naming the key."""
-    import hydra
-    import lightning
-    from conftest import compose_config
+    from conftest import single_scene_ea_checkpoint
 
     from nrt.modules.fields.voxel_medium import bake
     from nrt.modules.stages.ea import load_ea_field
     from nrt.physics.volume import sample_grid
 
-    ea_cfg = compose_config("train", ["stage=ea", "preset=tiny"])
-    ea_model = hydra.utils.instantiate(ea_cfg.model, _convert_="all")
-    ckpt = tmp_path / "ea.ckpt"
-    torch.save({"state_dict": ea_model.state_dict(), "hyper_parameters": dict(ea_model.hparams),
-                "pytorch-lightning_version": lightning.__version__}, ckpt)
+    ckpt = single_scene_ea_checkpoint(tmp_path / "ea.ckpt")
     model, dm = build(tmp_path, "init=oracle", f"init.ea_ckpt={ckpt}", "init.truth_share=0.5")
     fit(model, dm, 1)
     truth = dm.ground_truth

@@ -56,6 +56,7 @@ MODELS = [(s,) for s in options("stage")] + [
     ("rte", "experiment=rte_paper"), ("forward", "experiment=rte_paper")]
 """Every stage, and stage 2 in both formulations."""
 
+
 def builds_like_an_earlier_scene(scene: str) -> bool:
     """Whether ``scene`` differs from an earlier scene file (in name order, ``default``
     first) only in its name, seed and medium: the values a stage is not built from, so the
@@ -70,10 +71,13 @@ def builds_like_an_earlier_scene(scene: str) -> bool:
     return any(shape(scene) == shape(other) for other in earlier)
 
 
+BUILT_LIKE_AN_EARLIER_SCENE = {scene for scene in options("scene")
+                               if scene != "family" and builds_like_an_earlier_scene(scene)}
+
 COMBINATIONS = [(model, scene, preset) for model in MODELS
                 for scene in options("scene") if scene != "family"
                 for preset in options("preset")
-                if preset == "tiny" or not builds_like_an_earlier_scene(scene)] + [
+                if preset == "tiny" or scene not in BUILT_LIKE_AN_EARLIER_SCENE] + [
     (("ea", "mode=generative"), "family", preset) for preset in options("preset")] + [
     (("rte", "mode=generative"), "family", preset) for preset in options("preset")]
 
