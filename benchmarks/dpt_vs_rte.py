@@ -7,10 +7,11 @@ figure. Prints property MSE x100, novel-illumination PSNR and seconds beside the
 table (which used an isotropic scene and differential ratio tracking).
 
     python -m benchmarks.dpt_vs_rte --budget-s 300 [--ea-ckpt PATH] [--rte-run DIR]
-        [--preset cpu] [--output DIR]
+        [--scene default] [--preset cpu] [--output DIR]
 
 ``--rte-run`` reuses a finished stage-2 run (e.g. the accuracy_vs_time sweep's
-``ablation=base``); the baseline then gets that run's training seconds as its budget.
+``ablation=base``); the baseline then gets that run's training seconds as its budget, and
+its scene and EA checkpoint unless ``--scene`` / ``--ea-ckpt`` say otherwise.
 """
 
 from __future__ import annotations
@@ -35,7 +36,8 @@ def train_for(out: Path, stage: str, budget: float, args) -> Path:
     under ``out``; its run folder."""
     return train(stage, out, args.preset, [f"budget_s={budget}",
                                            f"budget.{stage}.steps={MANY_STEPS}",
-                                           f"init.ea_ckpt={args.ea_ckpt}"])[0]
+                                           f"init.ea_ckpt={args.ea_ckpt}",
+                                           f"scene={args.scene}"])[0]
 
 
 def evaluate(run_dir: Path, out: Path) -> dict:
@@ -94,14 +96,19 @@ def main() -> None:
     parser.add_argument("--budget-s", type=float, default=300.0)
     parser.add_argument("--ea-ckpt", help="EA checkpoint (default: newest in outputs/)")
     parser.add_argument("--rte-run", help="reuse this finished stage-2 run folder")
+    parser.add_argument("--scene", help="scene config (default: the --rte-run's, else default)")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--output", help="folder for the runs (default: a temporary one)")
     args = parser.parse_args()
     out = Path(args.output or tempfile.mkdtemp(prefix="nrt_dpt_vs_rte_"))
+    reused = json.loads((Path(args.rte_run) / "run.json").read_text()) if args.rte_run else {}
+    args.scene = args.scene or reused.get("scene", "default")
+    args.ea_ckpt = args.ea_ckpt or reused.get("ea_ckpt")
     if args.ea_ckpt is None:
-        found = newest_checkpoint("default")
+        found = newest_checkpoint(args.scene)
         if found is None:
-            sys.exit("No EA checkpoint: run `nrt-train stage=ea` first or pass --ea-ckpt.")
+            sys.exit(f"No EA checkpoint of scene '{args.scene}': run `nrt-train stage=ea "
+                     f"scene={args.scene}` first or pass --ea-ckpt.")
         args.ea_ckpt = str(found)
     start = time.perf_counter()
     if args.rte_run:
@@ -114,7 +121,8 @@ def main() -> None:
     results = {"dpt (this run)": (dpt, evaluate(dpt, out)),
                "rte (this run)": (rte, evaluate(rte, out))}
     run_cli("report", [str(rte), str(dpt), "--out", str(out / "report")], out)
-    print(f"\nEqual time: {budget:.0f} training seconds each, from {args.ea_ckpt}; "
+    print(f"\nEqual time on scene '{args.scene}': {budget:.0f} training seconds each, from "
+          f"{args.ea_ckpt}; "
           f"benchmark wall time {time.perf_counter() - start:.0f} s")
     print_table(results)
     print(f"Curves: {out / 'report' / 'accuracy_vs_time.png'}; runs under {out}")
