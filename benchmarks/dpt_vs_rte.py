@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import yaml
 
-from benchmarks.common import newest_checkpoint, run_cli, series, train
+from benchmarks.common import newest_checkpoint, output_dir, run_cli, series, train
 
 PAPER = {"DRT (paper)": (0.87, 4.06, 6.88, 43.3), "ours (paper)": (1.33, 1.66, 0.46, 30.5)}
 MANY_STEPS = 1_000_000  # the budget stops the run
@@ -38,6 +37,12 @@ def train_for(out: Path, stage: str, budget: float, args) -> Path:
                                            f"budget.{stage}.steps={MANY_STEPS}",
                                            f"init.ea_ckpt={args.ea_ckpt}",
                                            f"scene={args.scene}"])[0]
+
+
+def reused_start(rte_run: Path) -> tuple[str, str | None]:
+    """The scene and the EA checkpoint a finished stage-2 run started from (its run.json)."""
+    info = json.loads((rte_run / "run.json").read_text())
+    return info.get("scene", "default"), info.get("ea_ckpt")
 
 
 def evaluate(run_dir: Path, out: Path) -> dict:
@@ -101,14 +106,17 @@ def main() -> None:
     parser.add_argument("--output", help="folder for the runs (default: a temporary one)")
     args = parser.parse_args()
     out = Path(args.output or tempfile.mkdtemp(prefix="nrt_dpt_vs_rte_"))
-    reused = json.loads((Path(args.rte_run) / "run.json").read_text()) if args.rte_run else {}
-    args.scene = args.scene or reused.get("scene", "default")
-    args.ea_ckpt = args.ea_ckpt or reused.get("ea_ckpt")
+    if args.rte_run and not (Path(args.rte_run) / "run.json").is_file():
+        parser.error(f"--rte-run {args.rte_run}: no run.json there; pass a finished stage-2 run "
+                     "folder (outputs/<scene>/rte/<time>).")
+    scene, ea_ckpt = reused_start(Path(args.rte_run)) if args.rte_run else ("default", None)
+    args.scene = args.scene or scene
+    args.ea_ckpt = args.ea_ckpt or ea_ckpt
     if args.ea_ckpt is None:
         found = newest_checkpoint(args.scene)
         if found is None:
-            sys.exit(f"No EA checkpoint of scene '{args.scene}': run `nrt-train stage=ea "
-                     f"scene={args.scene}` first or pass --ea-ckpt.")
+            parser.error(f"no EA checkpoint of scene '{args.scene}' under {output_dir()}: run "
+                         f"`nrt-train stage=ea scene={args.scene}` first or pass --ea-ckpt.")
         args.ea_ckpt = str(found)
     start = time.perf_counter()
     if args.rte_run:
