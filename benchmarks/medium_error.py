@@ -11,10 +11,13 @@ least error a medium on that grid can have, and where it sits. ``--by depth`` bi
 cells by their true optical depth from outside the box instead (:func:`depth_from_outside`:
 the least, over the six axis directions, of the truth's extinction integrated from the box
 face to the cell's centre): how deep the light and the cameras must reach to see a cell's
-error. The dataset is the one the first run's ``run.json`` names, or ``--dataset``.
+error. ``--blur S`` adds, for each run, the row of its extinction blurred after training by a
+Gaussian of S cells of the truth's grid (:func:`gaussian_blur`): whether the fine texture
+a run keeps is error or the truth's (docs/stage2.md). The dataset is the one the first
+run's ``run.json`` names, or ``--dataset``.
 
-    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--by extinction|depth]
-        [--bins 0.5,2,5] [--dataset outputs/datasets/<name>]
+    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--blur 0.5] [--by
+        extinction|depth] [--bins 0.5,2,5] [--dataset outputs/datasets/<name>]
 """
 
 from __future__ import annotations
@@ -70,6 +73,24 @@ def run_extinction(run: Path, resolution: int) -> np.ndarray:
                      "(an EA run); pass a run folder of nrt-train.")
 
 
+def gaussian_blur(grid: np.ndarray, sigma: float) -> np.ndarray:
+    """``grid`` (Nz, Ny, Nx, C) blurred per channel by a separable Gaussian of standard
+    deviation ``sigma`` cells, truncated at 3 sigma and normalised to sum 1, the edges
+    padded by replication (so a constant stays constant)."""
+    radius = int(np.ceil(3 * sigma))
+    taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    kernel = torch.as_tensor(taps / taps.sum())
+    field = torch.as_tensor(grid).permute(3, 0, 1, 2)[:, None]  # (C, 1, Nz, Ny, Nx)
+    for axis in range(3):
+        shape = [1, 1, 1, 1, 1]
+        shape[2 + axis] = kernel.numel()
+        pad = [0] * 6
+        pad[2 * (2 - axis)] = pad[2 * (2 - axis) + 1] = radius
+        field = torch.nn.functional.conv3d(torch.nn.functional.pad(field, pad, mode="replicate"),
+                                           kernel.view(shape))
+    return field[:, 0].permute(1, 2, 3, 0).numpy()
+
+
 def _tensors(grids: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return {k: torch.from_numpy(np.asarray(v, np.float32)) for k, v in grids.items()}
 
@@ -102,6 +123,8 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, default=None)
     parser.add_argument("--floor", type=int, action="append", default=[],
                         help="grid resolution R: the truth resampled to R^3 and back")
+    parser.add_argument("--blur", type=float, action="append", default=[],
+                        help="also each run blurred by a Gaussian of this many cells")
     parser.add_argument("--by", choices=list(BINS), default="extinction",
                         help="bin the cells by the true sigma_t or by the optical depth from "
                              "outside the box")
@@ -127,8 +150,11 @@ def main() -> None:
     print("| medium | sigma_t MSE x100 | inflated share | " + " | ".join(bins) + " |")
     print("|---|---:|---:|" + "---:|" * len(bins))
     for run in args.runs:
-        print(f"| {run} | " + " | ".join(error_row(run_extinction(run, resolution), true_t, edges,
-                                                     key)) + " |")
+        estimate = run_extinction(run, resolution)
+        print(f"| {run} | " + " | ".join(error_row(estimate, true_t, edges, key)) + " |")
+        for sigma in args.blur:
+            print(f"| {run}, blurred {sigma:g} cells | " + " | ".join(
+                error_row(gaussian_blur(estimate, sigma), true_t, edges, key)) + " |")
     for r in args.floor:
         back = resample_grids(resample_grids(_tensors(truth), r), resolution)
         floor_t = np.asarray(back["sigma_a"] + back["sigma_s"], dtype=np.float64)
