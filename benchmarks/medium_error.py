@@ -13,10 +13,12 @@ the least, over the six axis directions, of the truth's extinction integrated fr
 face to the cell's centre): how deep the light and the cameras must reach to see a cell's
 error. ``--blur S`` adds, for each run, the row of its extinction blurred after training by a
 Gaussian of S cells of the truth's grid (:func:`gaussian_blur`): whether the fine texture
-a run keeps is error or the truth's (docs/stage2.md). The dataset is the one the first
-run's ``run.json`` names, or ``--dataset``.
+a run keeps is error or the truth's (docs/stage2.md). ``--mean`` adds the row of the runs'
+extinctions averaged cell by cell (an ensemble, e.g. stage 2 under several seeds): how much
+of each run's error is its own run's noise. The dataset is the one the first run's
+``run.json`` names, or ``--dataset``.
 
-    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--blur 0.5] [--by
+    python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--blur 0.5] [--mean] [--by
         extinction|depth] [--bins 0.5,2,5] [--dataset outputs/datasets/<name>]
 """
 
@@ -125,6 +127,8 @@ def main() -> None:
                         help="grid resolution R: the truth resampled to R^3 and back")
     parser.add_argument("--blur", type=float, action="append", default=[],
                         help="also each run blurred by a Gaussian of this many cells")
+    parser.add_argument("--mean", action="store_true",
+                        help="also the runs' extinctions averaged cell by cell")
     parser.add_argument("--by", choices=list(BINS), default="extinction",
                         help="bin the cells by the true sigma_t or by the optical depth from "
                              "outside the box")
@@ -149,12 +153,17 @@ def main() -> None:
           "cells / error share / bias / rms")
     print("| medium | sigma_t MSE x100 | inflated share | " + " | ".join(bins) + " |")
     print("|---|---:|---:|" + "---:|" * len(bins))
+    estimates = []
     for run in args.runs:
         estimate = run_extinction(run, resolution)
+        estimates.append(estimate)
         print(f"| {run} | " + " | ".join(error_row(estimate, true_t, edges, key)) + " |")
         for sigma in args.blur:
             print(f"| {run}, blurred {sigma:g} cells | " + " | ".join(
                 error_row(gaussian_blur(estimate, sigma), true_t, edges, key)) + " |")
+    if args.mean:
+        print(f"| mean of the {len(estimates)} runs | " + " | ".join(
+            error_row(np.mean(estimates, axis=0), true_t, edges, key)) + " |")
     for r in args.floor:
         back = resample_grids(resample_grids(_tensors(truth), r), resolution)
         floor_t = np.asarray(back["sigma_a"] + back["sigma_s"], dtype=np.float64)

@@ -3,11 +3,18 @@ partition the error (the docs quote its shares)."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import torch
 
 from benchmarks.medium_error import depth_from_outside, error_row, gaussian_blur
+from nrt.data.grids import save_property_grids
 from nrt.metrics import property_mse
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_error_row_matches_the_logged_metric_and_its_bins_partition_the_error() -> None:
@@ -63,3 +70,33 @@ def test_gaussian_blur_keeps_constants_and_mass_and_spreads_by_sigma() -> None:
             # the sampled Gaussian's variance is sigma^2 up to aliasing (exp(-2 pi^2 sigma^2),
             # < 3e-9 here) less the tail cut at 3 sigma, under 3 % of the variance
             assert np.isclose((profile * offsets ** 2).sum(), sigma ** 2, rtol=0.03)
+
+
+def test_the_mean_row_averages_the_runs_cell_by_cell(tmp_path) -> None:
+    """Two runs off the truth by +e and -e each score mean(e^2); their mean is the truth
+    (MSE 0): the command line reads the runs' exports and the dataset's ground truth."""
+    rng = np.random.default_rng(1)
+    truth = rng.gamma(1.0, 1.0, size=(8, 8, 8, 3))
+    error = rng.normal(0.0, 0.1, size=truth.shape)
+    g = np.zeros((8, 8, 8))
+    bbox = np.array([[-1.0] * 3, [1.0] * 3])
+    dataset = tmp_path / "dataset"
+    dataset.mkdir()
+    save_property_grids(dataset / "ground_truth.npz",
+                        {"sigma_a": 0 * truth, "sigma_s": truth, "g": g}, bbox)
+    runs = []
+    for sign in (1, -1):
+        run = tmp_path / f"run{sign}"
+        run.mkdir()
+        save_property_grids(run / "medium_grids.npz",
+                            {"sigma_a": 0 * truth, "sigma_s": truth + sign * error, "g": g}, bbox)
+        runs.append(str(run))
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.medium_error", *runs, "--mean",
+                           "--dataset", str(dataset)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=120, check=True)
+    rows = {line.split(" | ")[0].strip("| "): float(line.split(" | ")[1])
+            for line in proc.stdout.splitlines() if line.startswith("| ") and "MSE" not in line}
+    # float32 files: the truth and the runs round to ~1e-7 relative, far under the 3 digits
+    expected = 100 * np.mean(np.float32(error) ** 2)
+    assert all(abs(rows[run] - expected) < 2e-3 for run in runs)
+    assert rows["mean of the 2 runs"] < 1e-3
