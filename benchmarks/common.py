@@ -15,6 +15,23 @@ from omegaconf import DictConfig
 
 from nrt.cli.common import CONFIG_DIR, register_resolvers
 
+SCENES = {
+    "default": [],
+    "default_seed1": ["scene.seed=1", "scene.name=default_seed1"],
+    "default_seed2": ["scene.seed=2", "scene.name=default_seed2"],
+    "default_seed3": ["scene.seed=3", "scene.name=default_seed3"],
+    "varying_g": ["scene=varying_g"],
+    "heldout": ["scene=heldout"],
+    "heldout2": ["scene=heldout2"],
+    "heldout3": ["scene=heldout3"],
+    "heldout4": ["scene=heldout4"],
+}
+"""The benchmark scenes by name: their overrides of the default scene."""
+TUNING_SCENES = ("default", "default_seed1", "default_seed2", "default_seed3")
+"""The only scenes any default of nrt (stage 2's or the baseline's) is chosen on."""
+BLIND_SCENES = ("heldout", "heldout2", "heldout3", "heldout4")
+"""Scenes written once and never tuned on: they only report how the defaults carry over."""
+
 
 def compose_train(overrides: list[str]) -> DictConfig:
     """The ``nrt-train`` config with ``overrides``, as the CLI would compose it."""
@@ -60,6 +77,17 @@ def newest_checkpoint(scene: str) -> Path | None:
     runs = sorted((output_dir() / scene / "ea").glob("*/checkpoints/last.ckpt"),
                   key=lambda p: p.stat().st_mtime)
     return runs[-1].resolve() if runs else None
+
+
+def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None) -> Path:
+    """The EA checkpoint of the scene named ``name`` (its EA runs under :func:`output_dir`):
+    the newest one, else a new stage-1 run's on the scene of ``overrides`` (default: the
+    benchmark scene ``name``'s, :data:`SCENES`; another photo seed needs its own name)."""
+    found = newest_checkpoint(name)
+    if found is not None:
+        return found
+    run = train("ea", output_dir(), preset, SCENES[name] if overrides is None else overrides)[0]
+    return run / "checkpoints" / "last.ckpt"
 
 
 def metric_rows(run: Path) -> list[dict]:

@@ -24,18 +24,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchmarks.common import newest_checkpoint, output_dir, series, train
+from benchmarks.common import SCENES, newest_checkpoint, output_dir, series, train
 
-SCENES = {
-    "default": [],
-    "default_seed1": ["scene.seed=1", "scene.name=default_seed1"],
-    "default_seed2": ["scene.seed=2", "scene.name=default_seed2"],
-    "default_seed3": ["scene.seed=3", "scene.name=default_seed3"],
-    "varying_g": ["scene=varying_g"],
-    "heldout": ["scene=heldout"],
-    "heldout2": ["scene=heldout2"],
-    "heldout3": ["scene=heldout3"],
-}
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
 

@@ -38,26 +38,28 @@ class WallClock(L.Callback, RunClock):
         running = 0.0 if self._start is None else time.perf_counter() - self._start
         return self.elapsed_before + running
 
-    def _pause(self) -> None:
+    def pause(self) -> None:
+        """Stop counting (validation, measurements kept outside the budget)."""
         if self._start is not None:
             self.elapsed_before, self._start = self.seconds(), None
 
-    def _resume(self) -> None:
+    def resume(self) -> None:
+        """Count again after :meth:`pause`."""
         if self._start is None:
             self._start = time.perf_counter()
 
     def on_train_start(self, trainer, pl_module) -> None:
-        self._resume()
+        self.resume()
 
     def on_train_end(self, trainer, pl_module) -> None:
-        self._pause()
+        self.pause()
 
     def on_validation_start(self, trainer, pl_module) -> None:
-        self._pause()
+        self.pause()
 
     def on_validation_end(self, trainer, pl_module) -> None:
         if not trainer.sanity_checking and trainer.state.fn == "fit":
-            self._resume()
+            self.resume()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         seconds = self.seconds()
@@ -157,6 +159,10 @@ class PropertyMetrics(L.Callback):
     isotropic scene or a fixed g), ``val/mse_g_x100`` (weighted by the true sigma_s), at
     step 0 (the starting point of accuracy-versus-time curves), after each validation and
     when training ends; with ``slices``, the middle z-slices learned | true to TensorBoard.
+    With ``every_s``, also each time another ``every_s`` training seconds have passed
+    (curves with points at fixed wall-clock intervals, whatever the step rate): the
+    training clock (:class:`WallClock`) is paused while it measures, so the measurement
+    counts in no method's time or budget.
 
     On a scene family, for a stage with a medium per member
     (:meth:`~nrt.modules.stages.stage.Stage.member_property_grids`): each member's MSEs against its
@@ -164,9 +170,13 @@ class PropertyMetrics(L.Callback):
     ``val/mse_<property>_x100`` (slices of member 0).
     """
 
-    def __init__(self, slices: bool = True):
-        self.slices = slices
+    def __init__(self, slices: bool = True, every_s: float | None = None):
+        if every_s is not None and every_s <= 0:
+            raise ConfigError(f"callbacks.property_metrics.every_s={every_s}: a positive "
+                              "number of training seconds between measurements, or null.")
+        self.slices, self.every_s = slices, every_s
         self._last_measured: int | None = None
+        self._next_due = every_s
 
     def measure(self, trainer, pl_module: Stage) -> dict[str, float]:
         gt = pl_module.ground_truth()
@@ -220,11 +230,15 @@ class PropertyMetrics(L.Callback):
             log_image(pl_module, "val/g_slice_vs_truth",
                       ((g + 1) / 2).unsqueeze(-1).expand(-1, -1, 3), tonemap=False)
 
-    def _log_direct(self, trainer, pl_module) -> None:
+    def _log_direct(self, trainer, pl_module, slices: bool = True) -> None:
         """Outside a validation loop: straight to the loggers, with the clock beside."""
         clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
         seconds = clock.seconds() if clock is not None else None  # before measuring
-        values = self.measure(trainer, pl_module)
+        keep, self.slices = self.slices, self.slices and slices
+        try:
+            values = self.measure(trainer, pl_module)
+        finally:
+            self.slices = keep
         if not values:
             return
         if seconds is not None:
@@ -236,6 +250,21 @@ class PropertyMetrics(L.Callback):
     def on_train_start(self, trainer, pl_module) -> None:
         if trainer.global_step == 0:
             self._log_direct(trainer, pl_module)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if self.every_s is None:
+            return
+        clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
+        if clock is None or clock.seconds() < self._next_due:
+            return
+        clock.pause()
+        try:
+            self._log_direct(trainer, pl_module, slices=False)
+            self._last_measured = trainer.global_step
+        finally:
+            clock.resume()
+        while self._next_due <= clock.seconds():
+            self._next_due += self.every_s
 
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
         if trainer.sanity_checking:

@@ -23,7 +23,8 @@ STAGES = {  # a medium (property grids)? g scored (the default scene's phase is 
     ("rte", "init=none", "experiment=rte_paper"): (True, True),
     ("forward",): (False, True),
     ("forward", "experiment=rte_paper"): (False, True),
-    ("dpt",): (True, False),  # phase=hg: dpt keeps the one g fixed
+    ("dpt",): (True, True),  # phase=hg: dpt learns the one g, as stage 2 does
+    ("dpt", "model.phase_g=0.3"): (True, False),  # a given g is not scored
 }
 
 

@@ -128,7 +128,8 @@ def _render_into(tmp: Path, spec: dict, rigs: dict[str, np.ndarray], intr: Intri
             spec["spp"]))
         for split_idx, split in enumerate(SPLITS):
             for i, c2w in enumerate(rigs[split]):
-                seed = (env_idx * len(SPLITS) + split_idx) * 100_003 + i
+                seed = (env_idx * len(SPLITS) + split_idx) * 100_003 + i + \
+                    spec.get("photo_seed", 0) * 10_000_019
                 file_path = f"images/{name}/{split}_{i:03d}.exr"
                 write_exr(tmp / file_path, renderer.render(c2w, spec["spp"], seed))
                 frames[split].append({"file_path": file_path, "environment": name,

@@ -158,7 +158,9 @@ def resolve_scene(scene: Mapping[str, Any]) -> dict:
     medium = scene["medium"]
     res = int(medium["resolution"])
     _require(res >= 2, "medium.resolution", f"must be >= 2, got {res}")
-    return {
+    photo_seed = int(scene.get("photo_seed") or 0)
+    _require(photo_seed >= 0, "photo_seed", f"must be >= 0, got {photo_seed}")
+    resolved = {
         "format_version": FORMAT_VERSION,
         "name": str(scene["name"]),
         "seed": int(scene["seed"]),
@@ -182,6 +184,9 @@ def resolve_scene(scene: Mapping[str, Any]) -> dict:
         },
         "spp": int(scene["spp"]),
     }
+    if photo_seed:  # another Monte Carlo noise realisation of the same photos
+        resolved["photo_seed"] = photo_seed
+    return resolved
 
 
 def spec_hash(spec: Mapping) -> str:

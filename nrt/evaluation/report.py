@@ -20,8 +20,12 @@ from nrt.errors import NrtError
 from nrt.run_dirs import RUN_FILE
 
 CURVES = ("val/mse_sigma_a_x100", "val/mse_sigma_s_x100", "val/mse_sigma_t_x100",
-          "val/mse_g_x100", "val/psnr")
-"""Metrics drawn, in panel order (those no run logged are left out)."""
+          "val/mse_g_x100", "val/psnr", "eval/psnr_novel")
+"""Metrics drawn, in panel order (those no run logged are left out). ``val/psnr`` is each
+stage's own renderer, so it is drawn only when every run is of one stage; runs of several
+stages are compared by ``eval/psnr_novel``, the same Mitsuba re-render for all
+(:class:`nrt.callbacks.RerenderEvaluation`)."""
+OWN_RENDERER = ("val/psnr",)
 LOWER_IS_BETTER = {m: m.startswith("val/mse") for m in CURVES}
 IGNORED_OVERRIDES = ("hydra.", "paths.", "render.progress", "trainer.enable_progress_bar",
                      "init.ea_ckpt", "budget.dpt.steps", "budget.rte.steps", "budget.ea.steps")
@@ -174,18 +178,27 @@ EVAL_COLUMNS = {"psnr_novel": "psnr_novel", "ssim_novel": "ssim_novel",
 
 
 def summary_markdown(runs: list[RunCurves], shares: dict[str, float]) -> str:
-    """Final values per run (MSE x100 at the end of training, held-out PSNR, and the
-    newest nrt-eval's novel-illumination PSNR/SSIM when there is one)."""
+    """Final values per run (MSE x100 at the end of training, held-out PSNR of the stage's
+    own renderer when all runs are of one stage, and the newest nrt-eval's
+    novel-illumination PSNR/SSIM when there is one)."""
     head = ["setting", *SUMMARY_COLUMNS, *EVAL_COLUMNS, "frontier share (sigma_t)"]
     lines = ["| " + " | ".join(head) + " |", "|---" + "|---:" * (len(head) - 1) + "|"]
+    drawn = drawn_metrics(runs)
     for r in runs:
         cells = [r.label, f"{r.seconds:.0f}"]
-        cells += [r.final(m) for m in list(SUMMARY_COLUMNS.values())[1:]]
+        cells += [r.final(m) if m in drawn else "-" for m in list(SUMMARY_COLUMNS.values())[1:]]
         cells += [f"{r.evaluation[k]:.3f}" if k in r.evaluation else "-"
                   for k in EVAL_COLUMNS.values()]
         cells.append(f"{shares.get(r.label, 0.0):.2f}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
+
+
+def drawn_metrics(runs: list[RunCurves]) -> list[str]:
+    """The metrics of :data:`CURVES` that compare these runs by one measurement: without a
+    stage's own renderer's PSNR when the runs are of several stages."""
+    mixed = len({r.stage for r in runs}) > 1
+    return [m for m in CURVES if not (mixed and m in OWN_RENDERER)]
 
 
 def plot(runs: list[RunCurves], path: Path) -> Path:
@@ -196,7 +209,7 @@ def plot(runs: list[RunCurves], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    metrics = [m for m in CURVES if any(m in r.curves for r in runs)]
+    metrics = [m for m in drawn_metrics(runs) if any(m in r.curves for r in runs)]
     if not metrics:
         raise NrtError("None of the runs logged accuracy metrics against time/wall_s "
                        f"({', '.join(CURVES)}); they need ground truth and a validation.")

@@ -3,7 +3,7 @@
 :class:`ViewRenderer` loads a scene description (:func:`nrt.mitsuba.scene.scene_dict`) once
 and renders it from many cameras, reusing the compiled kernel. For differentiable rendering
 (``prbvolpath``) it also writes arrays into the scene's parameters with gradient tracking and
-back-propagates an image loss to them in Dr.Jit (:meth:`ViewRenderer.log_image_loss`).
+back-propagates an image loss to them in Dr.Jit (:meth:`ViewRenderer.image_loss`).
 """
 
 from __future__ import annotations
@@ -54,11 +54,15 @@ class ViewRenderer:
             self.params[key] = tensor
         self.params.update()
 
-    def log_image_loss(self, c2w: np.ndarray, ref: np.ndarray, values: Mapping[str, np.ndarray],
-                       spp: int, seed: int) -> tuple[float, dict[str, np.ndarray]]:
+    def image_loss(self, c2w: np.ndarray, ref: np.ndarray, values: Mapping[str, np.ndarray],
+                   spp: int, seed: int, kind: str = "l2_log"
+                   ) -> tuple[float, dict[str, np.ndarray]]:
         """Differentiable rendering: the scene with parameters ``values`` (``key -> array``,
         :meth:`set_parameters`) seen from camera ``c2w`` (OpenGL) against the photo ``ref``
-        (H, W, 3), both linear RGB: ``mean((log(1 + max(img, 0)) - log(1 + ref))^2)``.
+        (H, W, 3), both linear RGB, ``x = max(img, 0)``: ``l2_log`` ``mean((log(1 + x) -
+        log(1 + ref))^2)``, ``l1_log`` the same with absolute values, ``l2_relative``
+        ``mean((x - ref)^2 / (x_detached + eps)^2)`` with ``eps`` 1 % of the photo's mean
+        (RawNeRF's relative MSE: even weight across a high dynamic range).
         Returns the loss and its gradient with respect to each parameter of ``values``
         (float32, flat; non-finite entries are left for the caller to handle)."""
         import drjit as dr
@@ -66,9 +70,15 @@ class ViewRenderer:
         self.set_camera(c2w)
         self.set_parameters(values, grad=True)
         reference = self.mi.TensorXf(np.ascontiguousarray(ref))
-        img = self.mi.render(self.scene, self.params, spp=int(spp), seed=int(seed))
-        loss = dr.mean(dr.square(dr.log(1 + dr.maximum(img, 0)) - dr.log(1 + reference)),
-                       axis=None)
+        img = dr.maximum(self.mi.render(self.scene, self.params, spp=int(spp), seed=int(seed)),
+                         0)
+        if kind == "l2_relative":
+            eps = 0.01 * float(np.mean(ref)) + 1e-8
+            loss = dr.mean(dr.square(img - reference) / dr.square(dr.detach(img) + eps),
+                           axis=None)
+        else:
+            diff = dr.log(1 + img) - dr.log(1 + reference)
+            loss = dr.mean(dr.abs(diff) if kind == "l1_log" else dr.square(diff), axis=None)
         dr.backward(loss)
         grads = {key: np.asarray(dr.grad(self.params[key]), np.float32) for key in values}
         return float(np.asarray(loss).reshape(-1)[0]), grads

@@ -1,34 +1,35 @@
 """Baseline: differentiable volumetric path tracing of property grids (``stage=dpt``).
 
-Optimises voxel grids of extinction ``sigma_t`` (RGB, or one grey channel) and albedo
-(RGB), and of g when the scene's phase varies (through the ``nrt_hg_grid`` plugin), so
-that Mitsuba's ``prbvolpath`` renders of the grids match the photos, with full multiple
-scattering. Mitsuba estimates the gradients by **differentiable delta tracking** (path
-replay backpropagation), not the differential ratio tracking of the paper's baseline.
+Optimises voxel grids of extinction ``sigma_t`` (RGB, or one grey channel), albedo (RGB)
+and g (one shared g for ``phase=hg``, a g field for ``varying_hg``, through the
+``nrt_hg_grid`` plugin) so that Mitsuba's ``prbvolpath`` renders of the grids match the
+photos, with full multiple scattering. Mitsuba estimates the gradients by
+**differentiable delta tracking** (path replay backpropagation), not the differential
+ratio tracking of the paper's baseline.
 
-- Start: the EA density of the same scene (stage 1) at the coarsest grid into every
-  channel of sigma_t, a neutral albedo (``init_albedo``), g = 0; or (``init=grids``)
+- Grids: :class:`~nrt.modules.fields.path_traced_grids.PathTracedGrids` under
+  ``parametrization`` (``linear``, ``log``, or ``modulated`` like stage 2's medium).
+- Start: the EA density of the same scene (stage 1) baked on ``start_resolution``^3
+  cells (stage 2 bakes it on ``budget.rte.density_resolution``^3: the same start), into
+  every channel of sigma_t, a neutral albedo (``init_albedo``), g = 0; or (``init=grids``)
   property grids in the format every stage exports (``init.grids``, a run's
-  ``medium_grids.npz``), resampled to the coarsest grid: the path tracer refines another
-  method's medium with the full multiple-scattering gradient.
-- Each step renders one random training view, under its own environment (one Mitsuba
-  scene per environment of ``stage.environments``), at ``spp`` with gradients; the loss is the
-  MSE after the log tonemap (as stage 1 and the evaluation compare images), taken in
-  Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.log_image_loss`); ``dr.backward`` gives
-  the grid gradients, which become the ``.grad`` of torch parameters (non-finite entries
-  counted and zeroed), and torch's Adam steps, its rate decaying exponentially to
-  ``lr_final_factor`` of ``lr`` over the run. Values are
-  clamped after each step: ``0 <= sigma_t <= max_sigma_t``, albedo in [0, 1], |g| <= 0.95.
+  ``medium_grids.npz``).
+- g: learned (``phase_g: null``), as stage 2 learns it; or fixed at ``phase_g``.
+- Each step renders ``views_per_step`` random training views, each under its own
+  environment (one Mitsuba scene per environment of ``stage.environments``), at ``spp``
+  with gradients; the image loss (``loss``: ``l2_log``, the MSE after the log1p tonemap
+  as stage 1 and the evaluation compare images; ``l1_log``; ``l2_relative``) is taken in
+  Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.image_loss`) and averaged over the views;
+  ``dr.backward`` gives the gradients of the rendered arrays, which torch back-propagates
+  through the parametrisation to the parameters (non-finite entries counted and zeroed),
+  together with the optional extinction prior (``extinction_prior`` times the mean
+  extinction, as stage 2's). Adam steps; its rate decays exponentially to
+  ``lr_final_factor`` of ``lr`` over the run and is multiplied by ``lr_drop_factor`` at
+  each fraction of ``lr_drops`` (the differential-ratio-tracking code halves it at 75, 85
+  and 95 %).
 - Coarse to fine: the grids double (trilinear, cell-centred) at the fractions
   ``upsample_at`` of the run (of its steps, or of ``budget_s`` when that comes first)
-  until ``resolutions[-1]``; Adam's moments restart at each doubling. With ``ea_detail``
-  sigma_t also gets the EA density's detail of the finer grid added (what the coarser
-  grid could not hold): worth it when the first grid is too coarse for the medium (the
-  ``tiny`` preset's 8^3), not when the EA density's own fine detail is noisier than its
-  coarse shape (``cpu``: EA at 64^3 is further from the truth than EA at 16^3).
-- For ``phase=hg`` the single g is not optimised: ``phase_g``, or (null) the ground
-  truth's sigma_s-weighted mean when the dataset has one (an oracle the method lacks),
-  else 0. Isotropic scenes have no g.
+  until ``resolutions[-1]``; Adam's moments restart at each doubling.
 
 The grids are torch parameters, so checkpoints, resume (at the resolution reached) and
 the non-finite guard work as for every stage; exports use the ground truth's layout.
@@ -42,7 +43,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import nn
 
 from nrt.cameras import fov_x_deg
 from nrt.data.grids import (
@@ -52,26 +52,21 @@ from nrt.data.grids import (
     save_property_grids,
 )
 from nrt.errors import ConfigError, NrtError
-from nrt.modules.fields.coarse_to_fine import (
-    check_schedule,
-    decaying_lr,
-    resample_parameter,
-    resolution_at,
-)
+from nrt.modules.fields.coarse_to_fine import check_schedule, resolution_at
+from nrt.modules.fields.path_traced_grids import PathTracedGrids
 from nrt.modules.fields.voxel_medium import bake
 from nrt.modules.stages.stage import Stage, check_learning_rates
-from nrt.physics.phase import G_MAX, shared_g
-from nrt.physics.volume import resample_cells
 from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
 
 MITSUBA_KEYS = {"sigma_t": "sigma_t.data", "albedo": "albedo.data", "g": "g.data"}
+LOSSES = ("l2_log", "l1_log", "l2_relative")
 
 
-def check_start(density: dict, ea_detail: bool) -> None:
+def check_start(density: dict) -> None:
     """Refuse a start other than ``init=ea`` or ``init=grids`` with an existing
-    ``init.grids`` file (and the EA detail, which needs an EA density, with grids)."""
+    ``init.grids`` file."""
     source = density.get("source")
     if source == "ea":
         return
@@ -84,51 +79,67 @@ def check_start(density: dict, ea_detail: bool) -> None:
         raise ConfigError(f"init.grids='{path}': init=grids starts stage=dpt from a property-"
                           "grid file (sigma_a, sigma_s, g; a run's medium_grids.npz); give "
                           "an existing file, or use init=ea for the EA density.")
-    if ea_detail:
-        raise ConfigError("budget.dpt.ea_detail=true adds the EA density's detail at each "
-                          "doubling, but init=grids has no EA density: set it false.")
+
+
+def check_settings(loss: str, views_per_step: int, lr_drops, lr_drop_factor: float,
+                   extinction_prior: float) -> None:
+    """Refuse settings no run can use, naming the key."""
+    if loss not in LOSSES:
+        raise ConfigError(f"losses.image='{loss}': the baseline's image loss is one of "
+                          f"{list(LOSSES)}.")
+    if int(views_per_step) < 1:
+        raise ConfigError(f"budget.dpt.views_per_step={views_per_step}: render at least one "
+                          "view a step.")
+    if any(not 0 < f < 1 for f in lr_drops) or list(lr_drops) != sorted(lr_drops):
+        raise ConfigError(f"losses.lr_drops={list(lr_drops)}: increasing fractions of the run "
+                          "in (0, 1).")
+    if not 0 < lr_drop_factor <= 1:
+        raise ConfigError(f"losses.lr_drop_factor={lr_drop_factor}: a factor in (0, 1].")
+    if extinction_prior < 0:
+        raise ConfigError(f"losses.extinction_prior={extinction_prior}: a weight >= 0.")
 
 
 class DPTModule(Stage):
-    """Grids of sigma_t, albedo (and g) fitted by differentiable path tracing."""
+    """Grids of sigma_t, albedo and g fitted by differentiable path tracing."""
 
     def __init__(self, effects: dict, density: dict, resolutions: list[int],
                  upsample_at: list[float], spp: int = 8, val_spp: int = 32,
-                 lr: float = 0.02, lr_final_factor: float = 0.1, init_albedo: float = 0.8,
-                 max_sigma_t: float = 100.0,
-                 phase_g: float | None = None, property_resolution: int | None = None,
-                 ea_detail: bool = False, seed: int = 0):
+                 lr: float = 0.02, lr_final_factor: float = 0.1,
+                 lr_drops: list[float] | tuple = (), lr_drop_factor: float = 0.5,
+                 views_per_step: int = 1, loss: str = "l2_log",
+                 parametrization: str = "linear", start_resolution: int | None = None,
+                 init_albedo: float = 0.8, max_sigma_t: float = 100.0,
+                 phase_g: float | None = None, extinction_prior: float = 0.0,
+                 property_resolution: int | None = None, seed: int = 0):
         super().__init__(effects)
         self.save_hyperparameters()
         self.automatic_optimization = False
         check_schedule(resolutions, upsample_at, "budget.dpt.resolutions / upsample_at")
         check_learning_rates(lr, "losses.lr")
-        check_start(density, ea_detail)
-        res, channels = int(resolutions[0]), 3 if effects.get("chromatic", True) else 1
-        self.sigma_t = nn.Parameter(torch.ones(res, res, res, channels))
-        self.albedo = nn.Parameter(torch.full((res, res, res, 3), float(init_albedo)))
-        self.g = nn.Parameter(torch.zeros(res, res, res, 1)) \
-            if effects["phase"] == "varying_hg" else None
+        check_start(density)
+        check_settings(loss, views_per_step, list(lr_drops), lr_drop_factor, extinction_prior)
+        phase = effects["phase"]
+        g_kind = "none" if phase == "isotropic" else "fixed" if phase_g is not None else \
+            "field" if phase == "varying_hg" else "shared"
+        self.medium = PathTracedGrids(3 if effects.get("chromatic", True) else 1,
+                                      int(resolutions[0]), g_kind, parametrization,
+                                      start_resolution or int(resolutions[0]), max_sigma_t)
+        self.medium.fixed_g = float(phase_g) if phase_g is not None else 0.0
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
         self._renderers: dict[int, object] = {}  # a Mitsuba scene per environment, built once
         self._frames = None
-        self._fixed_g = 0.0
-        self._started = False  # grids set (from the EA density, or by a checkpoint)
-        self._ea = {}  # the EA field (kept out of the module's parameters and checkpoints)
+        self._started = False  # grids set (from the start, or by a checkpoint)
         self.nonfinite_grads = 0  # of the last image_loss, zeroed before Adam
 
     # ----------------------------------------------------------------- set-up
-    def grids(self) -> dict[str, nn.Parameter]:
-        """The optimised grids by name (``g`` only when g varies)."""
-        out = {"sigma_t": self.sigma_t, "albedo": self.albedo}
-        if self.g is not None:
-            out["g"] = self.g
-        return out
+    def grids(self) -> dict[str, torch.nn.Parameter]:
+        """The optimised grids by name (``g`` only when g is learned)."""
+        return self.medium.parameters_by_name()
 
     @property
     def learns_g(self) -> bool:
-        """Only a g field is learned; a fixed g (phase=hg) is not scored."""
-        return self.effects["phase"] == "varying_hg"
+        """g is learned (and scored) unless the scene is isotropic or ``phase_g`` fixes it."""
+        return self.medium.g is not None
 
     def setup(self, stage: str) -> None:
         dm = self.datamodule()
@@ -137,15 +148,6 @@ class DPTModule(Stage):
         self.bbox.copy_(dm.bbox)
         if not self._started:  # a resume overwrites it later; a trained module keeps its grids
             self._init_grids()
-        gt = dm.ground_truth
-        if self.effects["phase"] == "hg" and not self._started:
-            if self.hparams.phase_g is not None:
-                self._fixed_g = float(self.hparams.phase_g)
-            elif gt is not None:
-                self._fixed_g = shared_g(gt["sigma_s"], gt["g"])
-            log.info("dpt keeps the HG g fixed at %.4f (%s)", self._fixed_g,
-                     "model.phase_g" if self.hparams.phase_g is not None else
-                     "the ground truth's: an oracle" if gt is not None else "default")
         self.use_views(dm.train_data, {index: env.radiance.cpu().numpy()
                                        for index, env in dm.training_environments().items()},
                        dm.val_data)
@@ -159,57 +161,55 @@ class DPTModule(Stage):
         self._frames, self._envmaps, self._val_data = frames, envmaps, val_data
         self._renderers = {}
 
+    def _start_resolution(self) -> int:
+        return int(self.hparams.start_resolution or self.hparams.resolutions[0])
+
     @torch.no_grad()
     def _init_grids(self) -> None:
-        """The start: the EA density into sigma_t (``init=ea``), or every grid from
-        ``init.grids`` (``init=grids``), at the current resolution."""
-        res, density = self.sigma_t.shape[0], self.hparams.density
+        """The start: the EA density baked on ``start_resolution``^3 cells (``init=ea``), or
+        every grid from ``init.grids`` resampled to them (``init=grids``)."""
+        res, density = self._start_resolution(), self.hparams.density
         if density["source"] == "ea":
-            self.sigma_t.copy_(self._ea_density(res).expand_as(self.sigma_t))
-            log.info("dpt starts from the EA density of %s at %d^3 cells",
+            from nrt.modules.stages.ea import load_ea_field
+
+            field = load_ea_field(density["ea_ckpt"])
+            sigma_t = bake(field.density, res, self.bbox.cpu())
+            self.medium.start(sigma_t, torch.full((res, res, res, 3),
+                                                  float(self.hparams.init_albedo)))
+            log.info("dpt starts from the EA density of %s baked on %d^3 cells",
                      density["ea_ckpt"], res)
-            return
-        grids = load_property_grids(density["grids"])
-        grids = resample_grids(grids, res)  # the file's cells over the same box
-        sigma_t = grids["sigma_a"] + grids["sigma_s"]
-        albedo = grids["sigma_s"] / sigma_t.clamp_min(1e-12)
-        sigma_t = sigma_t if self.sigma_t.shape[-1] == 3 else sigma_t.mean(-1, keepdim=True)
-        self.sigma_t.copy_(sigma_t.clamp(0, self.hparams.max_sigma_t))
-        self.albedo.copy_(albedo.clamp(0, 1))
-        if self.g is not None:
-            self.g.copy_(grids["g"].clamp(-G_MAX, G_MAX).unsqueeze(-1))
-        log.info("dpt starts from the property grids %s at %d^3 cells", density["grids"], res)
-
-    @torch.no_grad()
-    def _ea_density(self, res: int) -> torch.Tensor:
-        """The EA density (clamped like sigma_t) at the cell centres of res^3 cells,
-        (R, R, R, 1) on the parameters' device."""
-        from nrt.modules.stages.ea import load_ea_field
-
-        if "field" not in self._ea:
-            self._ea["field"] = load_ea_field(self.hparams.density["ea_ckpt"])
-        field = self._ea["field"]
-        return bake(field.density, res, self.bbox.cpu()).clamp_max(
-            self.hparams.max_sigma_t).to(self.sigma_t.device)
+        else:
+            grids = resample_grids(load_property_grids(density["grids"]), res)
+            sigma_t = grids["sigma_a"] + grids["sigma_s"]
+            if self.medium.channels == 1:
+                sigma_t = sigma_t.mean(-1, keepdim=True)
+            albedo = grids["sigma_s"] / (grids["sigma_a"] + grids["sigma_s"]).clamp_min(1e-12)
+            self.medium.start(sigma_t, albedo, grids["g"] if self.learns_g else None)
+            log.info("dpt starts from the property grids %s on %d^3 cells", density["grids"],
+                     res)
+        self.medium.to(self.bbox.device)
 
     def configure_optimizers(self):
         opt = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
-        sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
+        drops, drop = list(self.hparams.lr_drops), float(self.hparams.lr_drop_factor)
+        final = float(self.hparams.lr_final_factor)
+
+        def factor(_: int) -> float:
+            progress = self.progress()
+            return final ** progress * drop ** sum(progress >= f for f in drops)
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
     # -------------------------------------------------------------- Mitsuba
     def property_arrays(self) -> dict[str, np.ndarray]:
         """The grids as the ground truth's arrays: sigma_a, sigma_s (R, R, R, 3), g."""
-        sigma_t = self.sigma_t.detach().cpu().expand(*self.albedo.shape[:3], 3)
-        albedo = self.albedo.detach().cpu()
-        g = self.g.detach().cpu()[..., 0] if self.g is not None else torch.full(
-            sigma_t.shape[:3], self._fixed_g)
-        return {"sigma_a": ((1 - albedo) * sigma_t).numpy(), "sigma_s": (albedo * sigma_t).numpy(),
-                "g": g.numpy()}
+        return {k: v.cpu().numpy() for k, v in self.medium.property_arrays().items()}
 
     def renderer(self, env: int):
         """The Mitsuba scene (``prbvolpath``) of the current grids under environment
-        ``env`` (an index of :meth:`use_views`'s maps), built once."""
+        ``env`` (an index of :meth:`use_views`'s maps), built once. A learned g is read
+        through the ``nrt_hg_grid`` phase (a one-cell grid for one shared g)."""
         if env not in self._renderers:
             from nrt.mitsuba.render import ViewRenderer
             from nrt.mitsuba.scene import scene_dict
@@ -217,9 +217,14 @@ class DPTModule(Stage):
 
             mi = select_variant("auto")
             intr = self._frames.intrinsics
-            spec = {"bbox": self.bbox.cpu().tolist(), "effects": self.effects}
+            arrays = self.property_arrays()
+            effects = dict(self.effects)
+            if self.learns_g:
+                effects["phase"] = "varying_hg"
+                arrays["g"] = self.medium.values()["g"].detach().cpu().numpy()[..., 0]
+            spec = {"bbox": self.bbox.cpu().tolist(), "effects": effects}
             renderer = ViewRenderer(mi, scene_dict(
-                mi, spec, self.property_arrays(), self._envmaps[env], intr.width, intr.height,
+                mi, spec, arrays, self._envmaps[env], intr.width, intr.height,
                 fov_x_deg(intr, "The training cameras"), self.hparams.spp,
                 integrator="prbvolpath"))
             self._keys = renderer.medium_keys(
@@ -227,17 +232,18 @@ class DPTModule(Stage):
             self._renderers[env] = renderer
         return self._renderers[env]
 
-    def _grid_values(self) -> dict[str, np.ndarray]:
-        """The torch grids as Mitsuba's parameters (scene key -> array; the same keys in
-        every environment's scene)."""
-        return {key: self.grids()[name].detach().cpu().contiguous().numpy()
+    def _mitsuba_values(self, values: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+        """Arrays of :meth:`PathTracedGrids.values` as Mitsuba's parameters (scene key ->
+        array; the same keys in every environment's scene)."""
+        return {key: values[name].detach().cpu().contiguous().numpy()
                 for name, key in self._keys.items()}
 
     def render_view(self, c2w: torch.Tensor, spp: int, seed: int, env: int) -> torch.Tensor:
         """A forward render (H, W, 3) of the current grids from an OpenGL camera under
         environment ``env``."""
         renderer = self.renderer(env)
-        renderer.set_parameters(self._grid_values())
+        with torch.no_grad():
+            renderer.set_parameters(self._mitsuba_values(self.medium.values()))
         return torch.from_numpy(renderer.render(c2w.cpu().numpy(), spp, seed))
 
     # --------------------------------------------------------------- training
@@ -246,67 +252,63 @@ class DPTModule(Stage):
         return resolution_at(self.progress(), self.hparams.resolutions,
                              self.hparams.upsample_at)
 
-    @torch.no_grad()
-    def _resize(self, res: int) -> None:
-        """Trilinear, cell-centred resampling of every grid to res^3, Adam's state for them
-        restarted (:mod:`nrt.modules.fields.coarse_to_fine`; moments resampled with the grid left
-        the steps 8x too small after a doubling). With ``ea_detail`` sigma_t also gets back
-        the EA density's detail that the coarse grid could not hold (EA at res^3 minus EA at
-        the old resolution, upsampled): a doubling without optimisation in between yields
-        the EA density at res^3 itself."""
-        opt = self.optimizers().optimizer
-        old = self.sigma_t.shape[0]
+    def image_loss(self, frames: int | list[int], seed: int) -> float:
+        """Render training views ``frames`` of the current grids with gradients (``spp``,
+        Mitsuba's ``seed`` plus the view's position in the list), compare each with its
+        photo (``loss``) and store the gradient of their mean, plus the extinction prior's,
+        as the ``.grad`` of every grid (non-finite entries of Mitsuba's gradients counted
+        and zeroed). Returns the mean image loss."""
+        frames = [frames] if isinstance(frames, int) else list(frames)
+        values = self.medium.values()
         for p in self.grids().values():
-            resample_parameter(p, opt, res)
-        if self.hparams.ea_detail:
-            detail = self._ea_density(res) - resample_cells(self._ea_density(old), res)
-            self.sigma_t.data = (self.sigma_t.data + detail).clamp(0, self.hparams.max_sigma_t)
-        log.info("dpt grids doubled to %d^3 at step %d", res, self.global_step)
-
-    def image_loss(self, frame: int, seed: int) -> float:
-        """Render training view ``frame`` of the current grids with gradients (``spp``,
-        Mitsuba's ``seed``), compare it with its photo (MSE after the log1p tonemap) and
-        store the loss's gradient as the ``.grad`` of every grid (non-finite entries
-        zeroed). Returns the loss."""
-        loss, grads = self.renderer(int(self._frames.env_index[frame])).log_image_loss(
-            self._frames.c2w[frame].cpu().numpy(), self._frames.images[frame].cpu().numpy(),
-            self._grid_values(), int(self.hparams.spp), int(seed))
-        self.nonfinite_grads = 0
+            p.grad = None
+        self.nonfinite_grads, total = 0, 0.0
+        grads: dict[str, np.ndarray] = {}
+        for k, frame in enumerate(frames):
+            renderer = self.renderer(int(self._frames.env_index[frame]))
+            value, view_grads = renderer.image_loss(
+                self._frames.c2w[frame].cpu().numpy(), self._frames.images[frame].cpu().numpy(),
+                self._mitsuba_values(values), int(self.hparams.spp), int(seed) + k,
+                self.hparams.loss)
+            total += value
+            for key, grad in view_grads.items():
+                grads[key] = grads[key] + grad if key in grads else grad
+        surrogate = torch.zeros(())
         for name, key in self._keys.items():
-            grad = grads[key]
+            grad = grads[key] / len(frames)
             bad = ~np.isfinite(grad)
             if bad.any():  # counted, then zeroed (NaN must never reach Adam's moments)
                 self.nonfinite_grads += int(bad.sum())
                 grad = np.where(bad, 0.0, grad).astype(np.float32)
-            param = self.grids()[name]
-            param.grad = torch.from_numpy(grad.reshape(param.shape)).to(param.device)
-        return loss
+            target = values[name]
+            surrogate = surrogate + (target * torch.from_numpy(grad.reshape(target.shape)).to(
+                target.device)).sum()
+        if self.hparams.extinction_prior > 0:
+            surrogate = surrogate + self.hparams.extinction_prior * values["sigma_t"].mean()
+        surrogate.backward()
+        return total / len(frames)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         res = self._resolution_now()
-        if res != self.sigma_t.shape[0]:
-            self._resize(res)
+        if res != self.medium.resolution:
+            self.medium.resize(res, self.optimizers().optimizer)
+            log.info("dpt grids doubled to %d^3 at step %d", res, self.global_step)
         start = time.perf_counter()
         gen = torch.Generator().manual_seed(self.hparams.seed * 1_000_003 + self.global_step)
-        frame = int(torch.randint(len(self._frames), (1,), generator=gen))
+        views = int(self.hparams.views_per_step)
+        frames = torch.randperm(len(self._frames), generator=gen)[:views].tolist() \
+            if views <= len(self._frames) else \
+            torch.randint(len(self._frames), (views,), generator=gen).tolist()
         opt = self.optimizers()
-        opt.zero_grad(set_to_none=True)
-        value = self.image_loss(frame, seed=self.global_step)
+        value = self.image_loss(frames, seed=self.global_step * views)
         opt.step()
         self.lr_schedulers().step()
-        self._clamp()
+        self.medium.clamp_()
         self.log("train/loss", value, prog_bar=True)
         self.log("time/step_render_s", time.perf_counter() - start)
         self.log("train/grid_resolution", float(res))
         self.log("train/nonfinite_render_grads", float(self.nonfinite_grads))
         return torch.tensor(value)
-
-    @torch.no_grad()
-    def _clamp(self) -> None:
-        self.sigma_t.clamp_(0.0, float(self.hparams.max_sigma_t))
-        self.albedo.clamp_(0.0, 1.0)
-        if self.g is not None:
-            self.g.clamp_(-G_MAX, G_MAX)
 
     # ------------------------------------------------------------- validation
     def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
@@ -321,27 +323,16 @@ class DPTModule(Stage):
 
     def property_grids(self, resolution: int) -> dict[str, torch.Tensor]:
         """The grids resampled to R^3 cells in the ground truth's layout."""
-        arrays = {k: torch.from_numpy(np.ascontiguousarray(v))
-                  for k, v in self.property_arrays().items()}
-        return resample_grids(arrays, resolution)
+        return resample_grids(self.medium.property_arrays(), resolution)
 
     def medium_bbox(self) -> torch.Tensor:
         return self.bbox
 
     # -------------------------------------------------------------- resume
-    def on_save_checkpoint(self, checkpoint: dict) -> None:
-        checkpoint["dpt_fixed_g"] = self._fixed_g
-
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Resize the grids to the checkpoint's resolution before its state is loaded, and
-        restore the fixed g of a ``phase=hg`` scene."""
-        self._fixed_g = float(checkpoint.get("dpt_fixed_g", self._fixed_g))
+        """Resize the grids to the checkpoint's resolution before its state is loaded."""
         self._started = True
-        state = checkpoint.get("state_dict", {})
-        with torch.no_grad():
-            for name, p in self.grids().items():
-                if name in state and state[name].shape != p.shape:
-                    p.data = torch.zeros_like(state[name])
+        self.medium.resize_to_state(checkpoint.get("state_dict", {}), "medium.")
 
     def teardown(self, stage: str) -> None:
         """Drop the Mitsuba scene (Dr.Jit 3.9 can fail to compile a kernel while older
@@ -351,8 +342,8 @@ class DPTModule(Stage):
     def export(self, run_dir: str | Path) -> dict[str, str]:
         """``medium_grids.npz`` at ``property_resolution`` (default: the ground truth's,
         else the final grid's)."""
-        res = self.grid_resolution(self.hparams.property_resolution, self.sigma_t.shape[0])
+        res = self.grid_resolution(self.hparams.property_resolution,
+                                   self.medium.values()["sigma_t"].shape[0])
         path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE,
                                    self.property_grids(res), self.bbox)
         return {"medium_grids": str(path)}
-

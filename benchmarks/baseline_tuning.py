@@ -1,0 +1,158 @@
+"""Tuning the path-tracing baseline (``stage=dpt``) on the tuning scenes, with a table kept.
+
+Each configuration of ``benchmarks/baseline_tuning.yaml`` (a list of Hydra overrides of the
+preset's defaults) trains ``stage=dpt`` for ``--budget-s`` training seconds from the scene's
+EA checkpoint (the newest under ``outputs/``, else a new stage-1 run), with the property
+MSE measured every ``--every-s`` training seconds outside the clock. One row per run is
+appended to the table (``docs/data/baseline_tuning.csv``): the end's property MSE x100,
+the best sigma_t on the way and when, steps and seconds. A run whose (config, scene,
+preset, budget) row exists is skipped, so a killed sweep resumes where it stopped.
+``--stage rte`` runs stage 2 at its defaults under the same budget for reference
+(config ``stage2``). Only the tuning scenes are accepted: nothing measured on a blind
+scene may choose a default.
+
+    python -m benchmarks.baseline_tuning --round round1 [--configs a,b] [--scenes default]
+        [--budget-s 300] [--every-s 15] [--preset cpu] [--table CSV] [--out DIR]
+    python -m benchmarks.baseline_tuning --summary [--table CSV]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import yaml
+
+from benchmarks.common import SCENES, TUNING_SCENES, ea_checkpoint, output_dir, series, train
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = Path(__file__).with_suffix(".yaml")
+TABLE = ROOT / "docs" / "data" / "baseline_tuning.csv"
+PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
+COLUMNS = ("round", "config", "stage", "scene", "preset", "budget_s", "seconds", "steps",
+           *(f"mse_{k}_x100" for k in PROPERTIES), "start_sigma_t", "best_sigma_t",
+           "best_at_s", "overrides")
+MANY_STEPS = 1_000_000  # the budget stops the run
+
+
+def read_table(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def append_row(path: Path, row: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    new = not path.is_file()
+    with open(path, "a", newline="") as f:
+        writer = csv.DictWriter(f, COLUMNS)
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def run_row(run: Path) -> dict:
+    """The measured columns of a finished run folder (its CSV log)."""
+    wall = series(run, "time/wall_s")
+    out = {"seconds": f"{wall[-1]:.1f}", "steps": int(max(series(run, "step"))) + 1}
+    for key in PROPERTIES:
+        values = series(run, f"val/mse_{key}_x100")
+        out[f"mse_{key}_x100"] = f"{values[-1]:.4f}" if values else ""
+    sigma_t = curve(run, "val/mse_sigma_t_x100")
+    best = min(sigma_t, key=lambda p: p[1])
+    out.update(start_sigma_t=f"{sigma_t[0][1]:.4f}", best_sigma_t=f"{best[1]:.4f}",
+               best_at_s=f"{best[0]:.1f}")
+    return out
+
+
+def curve(run: Path, key: str) -> list[tuple[float, float]]:
+    """(training seconds, value) of every logged value of ``key`` (rows that log it with
+    ``time/wall_s`` beside)."""
+    from benchmarks.common import metric_rows
+
+    return [(float(r["time/wall_s"]), float(r[key])) for r in metric_rows(run)
+            if r.get(key) and r.get("time/wall_s")]
+
+
+def summary(rows: list[dict]) -> str:
+    """Markdown: one line per (round, config), the MSEs per scene and their mean."""
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    keyed: dict[tuple, dict] = {}
+    for r in rows:
+        keyed.setdefault((r["round"], r["config"], r["budget_s"]), {})[r["scene"]] = r
+    head = ["round", "config", "budget s", *(f"{s} sigma_t / sigma_s" for s in scenes),
+            "mean sigma_t", "steps"]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for (rnd, config, budget), by_scene in keyed.items():
+        cells = [rnd, config, budget]
+        for s in scenes:
+            r = by_scene.get(s)
+            cells.append(f"{float(r['mse_sigma_t_x100']):.2f} / "
+                         f"{float(r['mse_sigma_s_x100']):.2f}" if r else "-")
+        ts = [float(r["mse_sigma_t_x100"]) for r in by_scene.values()]
+        cells += [f"{sum(ts) / len(ts):.3f}",
+                  "/".join(str(r["steps"]) for r in by_scene.values())]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--round", default="round1", help="a round of the configs file")
+    parser.add_argument("--configs", help="comma-separated names of the round (default: all)")
+    parser.add_argument("--scenes", default="default")
+    parser.add_argument("--stage", default="dpt", choices=("dpt", "rte"))
+    parser.add_argument("--budget-s", type=float, default=300.0)
+    parser.add_argument("--every-s", type=float, default=15.0)
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--table", type=Path, default=TABLE)
+    parser.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "tuning")
+    parser.add_argument("--summary", action="store_true", help="print the table and stop")
+    args = parser.parse_args()
+    if args.summary:
+        print(summary(read_table(args.table)))
+        return
+    scenes = args.scenes.split(",")
+    blind = [s for s in scenes if s not in TUNING_SCENES]
+    if blind:
+        parser.error(f"--scenes {','.join(blind)}: tuning runs only on the tuning scenes "
+                     f"({', '.join(TUNING_SCENES)}); a blind scene may not choose a default.")
+    rounds = yaml.safe_load(CONFIGS.read_text())
+    if args.stage == "rte":
+        configs = {"stage2": []}
+    else:
+        if args.round not in rounds:
+            parser.error(f"--round {args.round}: {CONFIGS.name} has {', '.join(rounds)}.")
+        configs = rounds[args.round]
+        if args.configs:
+            unknown = set(args.configs.split(",")) - set(configs)
+            if unknown:
+                parser.error(f"--configs: {', '.join(sorted(unknown))} not in {args.round}.")
+            configs = {k: configs[k] for k in args.configs.split(",")}
+    done = {(r["round"], r["config"], r["scene"], r["preset"], float(r["budget_s"]))
+            for r in read_table(args.table)}
+    budget = float(args.budget_s)
+    for scene in scenes:
+        ckpt = ea_checkpoint(scene, args.preset)
+        for name, overrides in configs.items():
+            key = (args.round, name, scene, args.preset, budget)
+            if key in done:
+                print(f"{name} on {scene}: in the table already", flush=True)
+                continue
+            run, _ = train(args.stage, args.out, args.preset, [
+                *SCENES[scene], f"init.ea_ckpt={ckpt}", f"budget_s={budget}",
+                f"budget.{args.stage}.steps={MANY_STEPS}",
+                f"callbacks.property_metrics.every_s={args.every_s}", *overrides])
+            row = {"round": args.round, "config": name, "stage": args.stage, "scene": scene,
+                   "preset": args.preset, "budget_s": budget,
+                   "overrides": " ".join(overrides), **run_row(run)}
+            append_row(args.table, row)
+            print(f"{name} on {scene}: sigma_t {row['mse_sigma_t_x100']} sigma_s "
+                  f"{row['mse_sigma_s_x100']} ({row['steps']} steps) {run}", flush=True)
+    print(summary(read_table(args.table)))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,273 @@
+"""Stage 2 against the path-tracing baseline on equal terms, with its data kept in the repository.
+
+``run``: for each scene and photo-noise realisation (``scene.photo_seed``; realisation N > 0
+is the scene named ``<scene>_photo<N>``), the EA checkpoint (the newest under
+``outputs/``, else a new stage-1 run on those photos), then each method from that one
+checkpoint for ``--budget-s`` training seconds: ``rte`` (stage 2), ``dpt`` (the baseline
+at its defaults) and, on the ``--paper-on`` scenes, ``rte_paper`` (the paper's
+formulation). Both stage 2 and the baseline start from the EA density baked on the same
+cells and learn g. The property MSE is measured every ``--every-s`` training seconds with
+the clock paused (for every method alike), and ``nrt-eval`` re-renders each result with
+Mitsuba under the held-back sky at the dataset's spp, beside the true medium's noise
+floor: one measurement for all methods. Per run, ``<data>/<scene>/photo<N>/<method>.csv``
+(the curves) and ``<method>.json`` (nrt-eval's metrics, steps, seconds) are written; a
+run whose JSON exists is skipped, so a killed comparison resumes.
+
+``redraw``: the figure (property MSE against training seconds, every scene and
+realisation, log time) and the Markdown table (mean and spread over realisations per scene
+and method, time-to-accuracy) from those files alone.
+
+    python -m benchmarks.fair_comparison run [--scenes default,heldout,...] [--photo-seeds 0,1]
+        [--methods rte,dpt,rte_paper] [--paper-on default] [--budget-s 600] [--every-s 25]
+        [--preset cpu] [--data DIR] [--out DIR]
+    python -m benchmarks.fair_comparison redraw [--data DIR] [--figure PNG] [--table MD]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import SCENES, ea_checkpoint, metric_rows, output_dir, run_cli, train
+
+ROOT = Path(__file__).resolve().parent.parent
+DATA = ROOT / "docs" / "data" / "fair_comparison"
+FIGURE = ROOT / "docs" / "figures" / "fair_comparison_cpu.png"
+PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
+METHODS = {"rte": ["stage=rte"], "dpt": ["stage=dpt"],
+           "rte_paper": ["stage=rte", "experiment=rte_paper"]}
+LABELS = {"rte": "stage 2 (nrt)", "dpt": "path tracing (baseline)",
+          "rte_paper": "paper's formulation"}
+COLOURS = {"rte": "tab:blue", "dpt": "tab:red", "rte_paper": "tab:green"}
+EVAL_KEYS = ("psnr_novel", "ssim_novel", "lpips_novel", "psnr_noise_floor_novel")
+MANY_STEPS = 1_000_000  # the budget stops the run
+HELD_BACK_SKY = 2
+"""The sky no method trains on (the paper's formulation trains on sky 0 alone, the others on
+skies 0 and 1): every method's novel-illumination score is its re-render under this one."""
+
+
+def scene_overrides(scene: str, photo_seed: int) -> tuple[str, list[str]]:
+    """The name of a realisation and its overrides of the default scene."""
+    if photo_seed == 0:
+        return scene, list(SCENES[scene])
+    name = f"{scene}_photo{photo_seed}"
+    return name, [*SCENES[scene], f"scene.photo_seed={photo_seed}", f"scene.name={name}"]
+
+
+def write_curve(run: Path, path: Path) -> int:
+    """The run's property MSEs x100 against training seconds as CSV; the number of points."""
+    rows = [r for r in metric_rows(run) if r.get("val/mse_sigma_t_x100") and
+            r.get("time/wall_s")]
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["wall_s", *PROPERTIES])
+        for r in rows:
+            w.writerow([f"{float(r['time/wall_s']):.2f}",
+                        *(f"{float(r[f'val/mse_{k}_x100']):.5g}" if r.get(f"val/mse_{k}_x100")
+                          else "" for k in PROPERTIES)])
+    return len(rows)
+
+
+def evaluate(run: Path, out: Path) -> dict:
+    """nrt-eval's metrics of a run: the Mitsuba re-render of the held-out views under
+    :data:`HELD_BACK_SKY` at the dataset's spp (every method alike), with LPIPS and the
+    noise floor."""
+    run_cli("eval", [f"run={run}", f"rerender.environments=[{HELD_BACK_SKY}]",
+                     "relight.enabled=false", "export.mitsuba=false", "render.progress=false"],
+            out)
+    latest = sorted(run.glob("eval/*/metrics.json"))[-1]
+    return json.loads(latest.read_text())["metrics"]
+
+
+def run_all(args) -> None:
+    methods = args.methods.split(",")
+    for scene in args.scenes.split(","):
+        for seed in map(int, args.photo_seeds.split(",")):
+            name, overrides = scene_overrides(scene, seed)
+            folder = args.data / scene / f"photo{seed}"
+            folder.mkdir(parents=True, exist_ok=True)
+            ckpt = None
+            for method in methods:
+                if method == "rte_paper" and scene not in args.paper_on.split(","):
+                    continue
+                result = folder / f"{method}.json"
+                if result.is_file():
+                    print(f"{scene} photo{seed} {method}: done already", flush=True)
+                    continue
+                ckpt = ckpt or ea_checkpoint(name, args.preset, overrides)
+                stage = METHODS[method][0].split("=")[1]
+                run, _ = train(stage, args.out, args.preset, [
+                    *METHODS[method][1:], *overrides, f"init.ea_ckpt={ckpt}",
+                    f"budget_s={args.budget_s}", f"budget.{stage}.steps={MANY_STEPS}",
+                    f"callbacks.property_metrics.every_s={args.every_s}"])
+                points = write_curve(run, folder / f"{method}.csv")
+                metrics = evaluate(run, args.out)
+                info = json.loads((run / "run.json").read_text())
+                steps = max(int(float(r["step"])) for r in metric_rows(run) if r.get("step"))
+                record = {"scene": scene, "photo_seed": seed, "method": method,
+                          "budget_s": args.budget_s, "preset": args.preset,
+                          "seconds": info["final_metrics"]["time/wall_s"], "steps": steps + 1,
+                          "curve_points": points, "learns_g": "mse_g_x100" in metrics,
+                          "metrics": {k: v for k, v in metrics.items()
+                                      if k.startswith(("mse_", *EVAL_KEYS))}}
+                result.write_text(json.dumps(record, indent=1) + "\n")
+                print(f"{scene} photo{seed} {method}: sigma_t {metrics['mse_sigma_t_x100']:.3f} "
+                      f"sigma_s {metrics['mse_sigma_s_x100']:.3f} PSNR "
+                      f"{metrics.get('psnr_novel', math.nan):.2f} ({points} curve points) {run}",
+                      flush=True)
+
+
+# ------------------------------------------------------------------------- redraw
+def read_results(data: Path) -> dict[tuple[str, int, str], dict]:
+    """(scene, photo seed, method) -> the run's record, with its curve as arrays."""
+    out = {}
+    for path in sorted(data.glob("*/photo*/*.json")):
+        record = json.loads(path.read_text())
+        with open(path.with_suffix(".csv"), newline="") as f:
+            rows = list(csv.DictReader(f))
+        record["curve"] = {k: np.array([float(r[k]) if r[k] else math.nan for r in rows])
+                           for k in ("wall_s", *PROPERTIES)}
+        out[(record["scene"], int(record["photo_seed"]), record["method"])] = record
+    return out
+
+
+def seconds_to_reach(curve: dict, key: str, level: float) -> float:
+    """Training seconds at which a curve first reaches ``level`` or lower (nan: never)."""
+    hit = np.nonzero(curve[key] <= level)[0]
+    return float(curve["wall_s"][hit[0]]) if hit.size else math.nan
+
+
+def mean_spread(values: list[float]) -> str:
+    """``mean +- half range`` over realisations (the value alone for one)."""
+    values = [v for v in values if not math.isnan(v)]
+    if not values:
+        return "-"
+    mean = sum(values) / len(values)
+    return f"{mean:.3f}" if len(values) == 1 else \
+        f"{mean:.3f} ± {(max(values) - min(values)) / 2:.3f}"
+
+
+def table(results: dict) -> str:
+    """Markdown: per scene and method, the end's property MSE x100 and the re-render
+    metrics, mean and half range over photo realisations; then stage 2's and the
+    baseline's time to reach each other's final sigma_t."""
+    scenes = list(dict.fromkeys(k[0] for k in results))
+    head = ["scene", "method", "realisations", "sigma_a", "sigma_s", "sigma_t", "g",
+            "PSNR novel", "SSIM novel", "LPIPS novel", "noise floor", "steps"]
+    lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
+    for scene in scenes:
+        for method in METHODS:
+            recs = [r for (s, _, m), r in sorted(results.items()) if s == scene and m == method]
+            if not recs:
+                continue
+            cells = [scene, LABELS[method], str(len(recs))]
+            for key in (*(f"mse_{k}_x100" for k in PROPERTIES), *EVAL_KEYS):
+                cells.append(mean_spread([r["metrics"].get(key, math.nan) for r in recs]))
+            cells.append(mean_spread([float(r["steps"]) for r in recs]).split(".")[0])
+            lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "| scene | photo seed | stage 2 s to the baseline's end sigma_t | baseline s to "
+              "stage 2's end sigma_t | budget s |", "|---|---:|---:|---:|---:|"]
+    for (scene, seed, method), rte in sorted(results.items()):
+        dpt = results.get((scene, seed, "dpt"))
+        if method != "rte" or dpt is None:
+            continue
+        a = seconds_to_reach(rte["curve"], "sigma_t", dpt["metrics"]["mse_sigma_t_x100"])
+        b = seconds_to_reach(dpt["curve"], "sigma_t", rte["metrics"]["mse_sigma_t_x100"])
+        never = f"never (> {dpt['seconds']:.0f})"
+        lines.append(f"| {scene} | {seed} | {a:.0f} | {never if math.isnan(b) else f'{b:.0f}'} "
+                     f"| {rte['budget_s']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def figure(results: dict, path: Path) -> Path:
+    """Rows of scenes, columns of properties: MSE x100 against training seconds (log-log),
+    one line per method and realisation, the baseline's best-so-far marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    scenes = list(dict.fromkeys(k[0] for k in results))
+    fig, axes = plt.subplots(len(scenes), len(PROPERTIES), squeeze=False,
+                             figsize=(3.4 * len(PROPERTIES), 2.6 * len(scenes)))
+    for row, scene in enumerate(scenes):
+        for col, key in enumerate(PROPERTIES):
+            ax = axes[row][col]
+            for (s, seed, method), rec in sorted(results.items()):
+                c = rec["curve"]
+                ok = (c["wall_s"] > 0) & np.isfinite(c[key])
+                if s != scene or not ok.any():
+                    continue
+                style = "-" if seed == 0 else "--"
+                ax.plot(c["wall_s"][ok], c[key][ok], style, color=COLOURS[method], lw=1.2,
+                        label=f"{LABELS[method]}, photos {seed}")
+                ax.plot([c["wall_s"][ok][0]], [c[key][0]], "o", color=COLOURS[method], ms=3)
+                if method == "dpt":
+                    best = int(np.nanargmin(c[key]))
+                    ax.plot(c["wall_s"][best], c[key][best], "*", color="k", ms=7)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+            ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.grid(True, which="both", alpha=0.3)
+            ax.set_title(f"{scene}: {key} MSE x100", fontsize=9)
+            if row == len(scenes) - 1:
+                ax.set_xlabel("training seconds (start at the first dot)")
+    handles = {}
+    for ax in axes.flat:
+        for line in ax.get_lines():
+            if not line.get_label().startswith("_"):
+                handles.setdefault(line.get_label(), line)
+    fig.legend(handles.values(), handles.keys(), loc="lower center", fontsize=8,
+               ncol=min(len(handles), 3), frameon=False)
+    fig.text(0.01, 0.005, "*: the baseline's best value on the way (not selectable without "
+             "the truth)", fontsize=7)
+    fig.tight_layout(rect=(0, 0.04 + 0.025 * ((len(handles) + 2) // 3), 1, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("run", help="train, evaluate and record")
+    run.add_argument("--scenes", default="default,heldout,heldout2,heldout3,heldout4")
+    run.add_argument("--photo-seeds", default="0,1")
+    run.add_argument("--methods", default="rte,dpt,rte_paper")
+    run.add_argument("--paper-on", default="default", help="scenes that run rte_paper too")
+    run.add_argument("--budget-s", type=float, default=600.0)
+    run.add_argument("--every-s", type=float, default=25.0)
+    run.add_argument("--preset", default="cpu")
+    run.add_argument("--data", type=Path, default=DATA)
+    run.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "comparison")
+    redraw = sub.add_parser("redraw", help="figure and table from the recorded data")
+    redraw.add_argument("--data", type=Path, default=DATA)
+    redraw.add_argument("--figure", type=Path, default=FIGURE)
+    redraw.add_argument("--table", type=Path, default=DATA / "table.md")
+    args = parser.parse_args()
+    if args.command == "run":
+        unknown = [s for s in args.scenes.split(",") if s not in SCENES]
+        if unknown:
+            parser.error(f"--scenes: {', '.join(unknown)} unknown; known: {', '.join(SCENES)}.")
+        run_all(args)
+        return
+    results = read_results(args.data)
+    if not results:
+        parser.error(f"no results under {args.data}: run `python -m benchmarks.fair_comparison "
+                     "run` first.")
+    text = table(results)
+    args.table.write_text(text)
+    print(text)
+    print(f"figure: {figure(results, args.figure)}; table: {args.table}")
+
+
+if __name__ == "__main__":
+    main()
