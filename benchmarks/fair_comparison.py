@@ -153,19 +153,20 @@ def mean_spread(values: list[float]) -> str:
 
 
 def table(results: dict) -> str:
-    """Markdown: per scene and method, the end's property MSE x100 and the re-render
-    metrics, mean and half range over photo realisations; then stage 2's and the
-    baseline's time to reach each other's final sigma_t."""
+    """Markdown: per scene and method, the start's sigma_t and the end's property MSE x100
+    and re-render metrics, mean and half range over photo realisations; then stage 2's and
+    the baseline's time to reach each other's final sigma_t."""
     scenes = list(dict.fromkeys(k[0] for k in results))
-    head = ["scene", "method", "realisations", "sigma_a", "sigma_s", "sigma_t", "g",
-            "PSNR novel", "SSIM novel", "LPIPS novel", "noise floor", "steps"]
+    head = ["scene", "method", "realisations", "start sigma_t", "sigma_a", "sigma_s",
+            "sigma_t", "g", "PSNR novel", "SSIM novel", "LPIPS novel", "noise floor", "steps"]
     lines = ["| " + " | ".join(head) + " |", "|---|---|" + "---:|" * (len(head) - 2)]
     for scene in scenes:
         for method in METHODS:
             recs = [r for (s, _, m), r in sorted(results.items()) if s == scene and m == method]
             if not recs:
                 continue
-            cells = [scene, LABELS[method], str(len(recs))]
+            cells = [scene, LABELS[method], str(len(recs)),
+                     mean_spread([float(r["curve"]["sigma_t"][0]) for r in recs])]
             for key in (*(f"mse_{k}_x100" for k in PROPERTIES), *EVAL_KEYS):
                 cells.append(mean_spread([r["metrics"].get(key, math.nan) for r in recs]))
             cells.append(mean_spread([float(r["steps"]) for r in recs]).split(".")[0])

@@ -216,10 +216,10 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert figure.stat().st_size > 10_000
     text = table.read_text()
-    assert "| default | stage 2 (nrt) | 2 | 1.000 ± 0.000 | 2.000 ± 0.000 | 2.100 ± 0.100 |" \
-        in text
-    assert "| default | path tracing (baseline) | 2 | 1.000 ± 0.000 | 2.000 ± 0.000 | " \
-        "6.000 ± 0.000 |" in text
+    assert "| default | stage 2 (nrt) | 2 | 9.000 ± 0.000 | 1.000 ± 0.000 | 2.000 ± 0.000 | " \
+        "2.100 ± 0.100 |" in text
+    assert "| default | path tracing (baseline) | 2 | 9.000 ± 0.000 | 1.000 ± 0.000 | " \
+        "2.000 ± 0.000 | 6.000 ± 0.000 |" in text
     assert "35.500 ± 0.500" in text  # the PSNR over the two realisations
     # stage 2 reaches the baseline's end (6.0) at 10 s; the baseline never reaches 2.0 / 2.2
     assert "| default | 0 | 10 | never (> 40) | 40 |" in text
