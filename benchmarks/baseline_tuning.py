@@ -77,23 +77,26 @@ def curve(run: Path, key: str) -> list[tuple[float, float]]:
 
 
 def summary(rows: list[dict]) -> str:
-    """Markdown: one line per (round, config), the MSEs per scene and their mean."""
-    scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    keyed: dict[tuple, dict] = {}
+    """Markdown: one line per (round, config, budget): the end's MSEs x100 averaged over the
+    scenes it ran on, the best sigma_t on the way and when, the steps, and the overrides."""
+    keyed: dict[tuple, list[dict]] = {}
     for r in rows:
-        keyed.setdefault((r["round"], r["config"], r["budget_s"]), {})[r["scene"]] = r
-    head = ["round", "config", "budget s", *(f"{s} sigma_t / sigma_s" for s in scenes),
-            "mean sigma_t", "steps"]
-    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
-    for (rnd, config, budget), by_scene in keyed.items():
-        cells = [rnd, config, budget]
-        for s in scenes:
-            r = by_scene.get(s)
-            cells.append(f"{float(r['mse_sigma_t_x100']):.2f} / "
-                         f"{float(r['mse_sigma_s_x100']):.2f}" if r else "-")
-        ts = [float(r["mse_sigma_t_x100"]) for r in by_scene.values()]
-        cells += [f"{sum(ts) / len(ts):.3f}",
-                  "/".join(str(r["steps"]) for r in by_scene.values())]
+        keyed.setdefault((r["round"], r["config"], r["stage"], r["budget_s"]), []).append(r)
+    head = ["round", "config", "scenes", "budget s", "sigma_a", "sigma_s", "sigma_t", "g",
+            "best sigma_t (at s)", "steps", "overrides"]
+    lines = ["| " + " | ".join(head) + " |", "|---|---|---|" + "---:|" * 7 + "---|"]
+
+    def mean(runs: list[dict], key: str) -> float:
+        values = [float(r[key]) for r in runs if r[key]]
+        return sum(values) / len(values) if values else float("nan")
+
+    for (rnd, config, stage, budget), runs in keyed.items():
+        name = config if stage == "dpt" else f"{config} (stage=rte)"
+        cells = [rnd, name, ", ".join(r["scene"] for r in runs), f"{float(budget):.0f}",
+                 *(f"{mean(runs, f'mse_{k}_x100'):.3f}" for k in PROPERTIES),
+                 f"{mean(runs, 'best_sigma_t'):.3f} ({mean(runs, 'best_at_s'):.0f})",
+                 "/".join(str(r["steps"]) for r in runs), f"`{runs[0]['overrides']}`"
+                 if runs[0]["overrides"] else "defaults"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -202,24 +202,27 @@ def figure(results: dict, path: Path) -> Path:
             ax = axes[row][col]
             for (s, seed, method), rec in sorted(results.items()):
                 c = rec["curve"]
-                ok = (c["wall_s"] > 0) & np.isfinite(c[key])
+                ok = np.isfinite(c[key])
                 if s != scene or not ok.any():
                     continue
+                # log time has no zero: the start (step 0) is drawn at half the first interval
+                t = np.maximum(c["wall_s"], c["wall_s"][c["wall_s"] > 0].min(initial=1.0) / 2)
                 style = "-" if seed == 0 else "--"
-                ax.plot(c["wall_s"][ok], c[key][ok], style, color=COLOURS[method], lw=1.2,
+                ax.plot(t[ok], c[key][ok], style, color=COLOURS[method], lw=1.2,
                         label=f"{LABELS[method]}, photos {seed}")
-                ax.plot([c["wall_s"][ok][0]], [c[key][0]], "o", color=COLOURS[method], ms=3)
+                ax.plot(t[ok][:1], c[key][ok][:1], "o", color=COLOURS[method], ms=3)
                 if method == "dpt":
                     best = int(np.nanargmin(c[key]))
-                    ax.plot(c["wall_s"][best], c[key][best], "*", color="k", ms=7)
+                    ax.plot(t[best], c[key][best], "*", color="k", ms=7)
             ax.set_xscale("log")
             ax.set_yscale("log")
-            ax.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
-            ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            for axis in (ax.xaxis, ax.yaxis):
+                axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+                axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
             ax.grid(True, which="both", alpha=0.3)
             ax.set_title(f"{scene}: {key} MSE x100", fontsize=9)
             if row == len(scenes) - 1:
-                ax.set_xlabel("training seconds (start at the first dot)")
+                ax.set_xlabel("training seconds (the dot: the start)")
     handles = {}
     for ax in axes.flat:
         for line in ax.get_lines():

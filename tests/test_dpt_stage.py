@@ -34,7 +34,7 @@ from nrt.modules.stages.dpt import DPTModule
 from nrt.modules.stages.ea import load_ea_field
 from nrt.physics.volume import cell_centres
 
-STEPS = 60  # budget.dpt.steps of preset tiny: 8^3 cells, doubled to 16^3 at step 30
+STEPS = 60  # budget.dpt.steps of preset tiny: 4^3 cells, 8^3 from step 24, 16^3 from step 36
 RUN_ARGS = ("trainer.log_every_n_steps=1",  # every step's loss, for the window means
             "budget.val_every=30")          # held-out views at steps 30 and 60
 EVAL_SPP = 64
@@ -67,24 +67,25 @@ def test_dpt_lowers_image_loss_and_property_mse_from_its_ea_start(dpt_run):
     assert "starts from the EA density" in proc.stdout + proc.stderr
     rows = read_csv_metrics(run)
     # Image loss (log1p MSE of one random view at 16 spp per step). Measured on seeds 0-2:
-    # the mean of the first 15 steps 4.7-5.2e-4, of the last 15 2.8-3.2e-4 (ratio 0.53-0.68);
+    # the mean of the first 15 steps 5.0-7.0e-4, of the last 15 3.6-4.1e-4 (ratio 0.53-0.71);
     # within a window the steps scatter by 15-25 % (different views, Monte Carlo noise), so a
-    # 15-step mean is known to ~5 % and the ratio to ~0.05: 0.8 is 2.5+ such errors above
-    # the worst seed and far below 1.
+    # 15-step mean is known to ~5 % and the ratio to ~0.05: 0.8 is nearly two such errors
+    # above the worst seed (a run is deterministic up to Dr.Jit's atomic summation order)
+    # and far below 1.
     loss = values(rows, "train/loss")
     assert len(loss) == STEPS
     early, late = np.mean(loss[:15]), np.mean(loss[-15:])
     assert late < 0.8 * early, (early, late)
-    # Property MSE x100 from the start (the EA density on the coarse 8^3 grid, albedo 0.8)
-    # to the end; seeds 0-2 gave end/start ratios sigma_t 0.60-0.62, sigma_s 0.67-0.75,
-    # sigma_a 0.55-0.60 (deterministic up to Dr.Jit's atomic summation order).
-    for key, ratio in (("sigma_t", 0.8), ("sigma_s", 0.9), ("sigma_a", 0.8)):
+    # Property MSE x100 from the start (stage 2's: the EA density baked on 16^3 cells,
+    # albedo 0.8, g = 0) to the end (modulated grids 4 -> 8 -> 16, the extinction prior);
+    # seeds 0-2 gave end/start ratios sigma_t 0.66-0.74, sigma_s 0.76-0.83, sigma_a
+    # 0.39-0.43, g 0.25-0.69 (the one g is learned and scored).
+    for key, ratio in (("sigma_t", 0.85), ("sigma_s", 0.92), ("sigma_a", 0.6), ("g", 0.9)):
         mse = values(rows, f"val/mse_{key}_x100")
         assert len(mse) == 3, mse  # step 0 and the two validations (the last is the end)
         assert mse[-1] < ratio * mse[0], (key, mse)
-    assert len(values(rows, "val/mse_g_x100")) == 3  # phase=hg: the one g is learned, scored
-    assert values(rows, "train/grid_resolution")[0] == 8
-    assert values(rows, "train/grid_resolution")[-1] == 16  # coarse to fine: 8 -> 16
+    assert values(rows, "train/grid_resolution")[0] == 4
+    assert values(rows, "train/grid_resolution")[-1] == 16  # coarse to fine: 4 -> 8 -> 16
     # Held-out views are rendered and scored by the shared HeldOutImageMetrics callback.
     assert len(values(rows, "val/psnr")) == 2 and len(values(rows, "val/ssim")) == 2
     assert values(rows, "time/wall_s")[-1] > 0
@@ -137,7 +138,7 @@ def test_dpt_exports_and_resumes_at_the_reached_resolution(dpt_run, tiny_dataset
     queried = module.property_grids(32)
     for key in ("sigma_a", "sigma_s", "g"):
         torch.testing.assert_close(queried[key], grids[key], rtol=1e-5, atol=1e-6)
-    g = float(module.medium.values()["g"].reshape(()))
+    g = float(module.medium.values()["g"].detach().reshape(()))
     assert g != 0.0 and torch.allclose(grids["g"], torch.tensor(g), atol=1e-6)  # it moved
     # Resume through the CLI (in a copy of the run): 4 more steps at 16^3, continuing from
     # the trained grids and Adam state (the loss stays at its late level, ~3e-4, instead of
