@@ -36,8 +36,9 @@ from nrt.physics.phase import G_MAX
 from nrt.physics.volume import resample_cells
 
 PARAMETRIZATIONS = ("linear", "log", "modulated")
-SMALLEST_LOG_EXTINCTION = math.log(1e-3)
-"""``log``: cells of the start below 1e-3 per unit length start there (log 0 is -inf)."""
+SMALLEST_LOG_EXTINCTION = 1e-3
+"""``log``: cells of the start below this extinction (per unit length) start at it (log 0
+is -inf)."""
 LOGIT_LIMIT = 6.0
 """Albedo logits and g's pre-tanh start within +-6 (albedo 0.0025-0.9975)."""
 
@@ -108,7 +109,7 @@ class PathTracedGrids(nn.Module):
         if self.g is not None:
             self.g.copy_(torch.atanh(g_cells / G_MAX).clamp(-LOGIT_LIMIT, LOGIT_LIMIT))
         if self.parametrization == "log":
-            self.sigma_t.copy_(torch.log(_resized(sigma_t, r).clamp_min(1e-3)))
+            self.sigma_t.copy_(torch.log(_resized(sigma_t, r).clamp_min(SMALLEST_LOG_EXTINCTION)))
         else:
             self.base = _resized(sigma_t, self.base.shape[0]).contiguous()
             self.sigma_t.zero_()

@@ -264,12 +264,13 @@ class DPTModule(Stage):
             p.grad = None
         self.nonfinite_grads, total = 0, 0.0
         grads: dict[str, np.ndarray] = {}
+        arrays = None  # Mitsuba's keys are known once a renderer is built
         for k, frame in enumerate(frames):
             renderer = self.renderer(int(self._frames.env_index[frame]))
+            arrays = arrays or self._mitsuba_values(values)
             value, view_grads = renderer.image_loss(
                 self._frames.c2w[frame].cpu().numpy(), self._frames.images[frame].cpu().numpy(),
-                self._mitsuba_values(values), int(self.hparams.spp), int(seed) + k,
-                self.hparams.loss)
+                arrays, int(self.hparams.spp), int(seed) + k, self.hparams.loss)
             total += value
             for key, grad in view_grads.items():
                 grads[key] = grads[key] + grad if key in grads else grad
