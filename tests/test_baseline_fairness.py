@@ -236,3 +236,37 @@ def test_tuning_refuses_a_blind_scene(tmp_path):
     assert proc.returncode == 2
     assert "heldout2" in proc.stderr and "tuning scenes" in proc.stderr
     assert not (tmp_path / "t.csv").exists()
+
+
+def test_several_views_a_step_average_their_gradients():
+    """``views_per_step``: the gradient of a step over views [0, 0] (Mitsuba seeds s, s + 1)
+    is the mean of the one-view gradients at those seeds, and so is the returned loss."""
+    gc.collect()
+    start = torch.rand(4, 4, 4, 1, generator=torch.Generator().manual_seed(1)) * 3 + 0.5
+    module = DPTModule(EFFECTS, {"source": "ea", "ea_ckpt": None}, [4], [], spp=4)
+    module.medium.start(start, torch.full((4, 4, 4, 3), 0.7))
+    _one_view(module)
+    single = []
+    for seed in (7, 8):
+        loss = module.image_loss(0, seed=seed)
+        single.append((loss, {k: p.grad.clone() for k, p in module.grids().items()}))
+    loss = module.image_loss([0, 0], seed=7)
+    assert loss == pytest.approx((single[0][0] + single[1][0]) / 2, rel=1e-5)
+    for name, p in module.grids().items():
+        torch.testing.assert_close(p.grad, (single[0][1][name] + single[1][1][name]) / 2,
+                                   rtol=1e-4, atol=1e-9)
+    module.teardown("test")
+
+
+def test_the_rate_decays_and_drops_at_its_fractions():
+    """The rate is ``lr * lr_final_factor ** progress * lr_drop_factor ** (drops passed)``:
+    the exponential decay of stage 2 and the step drops of the differential-ratio-tracking
+    code, composable."""
+    module = DPTModule(EFFECTS, {"source": "ea", "ea_ckpt": None}, [4], [], lr=0.02,
+                       lr_final_factor=0.1, lr_drops=[0.5, 0.75], lr_drop_factor=0.5)
+    (opt,), (sched,) = module.configure_optimizers()
+    rate = sched["scheduler"].lr_lambdas[0]
+    for progress, want in ((0.0, 1.0), (0.4, 0.1 ** 0.4), (0.5, 0.1 ** 0.5 * 0.5),
+                           (0.8, 0.1 ** 0.8 * 0.25), (1.0, 0.1 * 0.25)):
+        module.progress = lambda p=progress: p
+        assert rate(0) == pytest.approx(want), progress
