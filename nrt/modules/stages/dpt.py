@@ -23,7 +23,8 @@ ratio tracking of the paper's baseline.
   ``dr.backward`` gives the gradients of the rendered arrays, which torch back-propagates
   through the parametrisation to the parameters (non-finite entries counted and zeroed),
   together with the optional extinction prior (``extinction_prior`` times the mean
-  extinction, as stage 2's). Adam steps; its rate decays exponentially to
+  extinction, as stage 2's). Adam steps (g's grid at ``lr_g_factor`` times the others'
+  rate); its rate decays exponentially to
   ``lr_final_factor`` of ``lr`` over the run and is multiplied by ``lr_drop_factor`` at
   each fraction of ``lr_drops`` (the differential-ratio-tracking code halves it at 75, 85
   and 95 %).
@@ -104,7 +105,7 @@ class DPTModule(Stage):
 
     def __init__(self, effects: dict, density: dict, resolutions: list[int],
                  upsample_at: list[float], spp: int = 8, val_spp: int = 32,
-                 lr: float = 0.02, lr_final_factor: float = 0.1,
+                 lr: float = 0.02, lr_g_factor: float = 1.0, lr_final_factor: float = 0.1,
                  lr_drops: list[float] | tuple = (), lr_drop_factor: float = 0.5,
                  views_per_step: int = 1, loss: str = "l2_log",
                  parametrization: str = "linear", start_resolution: int | None = None,
@@ -116,6 +117,7 @@ class DPTModule(Stage):
         self.automatic_optimization = False
         check_schedule(resolutions, upsample_at, "budget.dpt.resolutions / upsample_at")
         check_learning_rates(lr, "losses.lr")
+        check_learning_rates(lr * lr_g_factor, "losses.lr_g_factor (times losses.lr)")
         check_start(density)
         check_settings(loss, views_per_step, list(lr_drops), lr_drop_factor, extinction_prior)
         phase = effects["phase"]
@@ -190,7 +192,12 @@ class DPTModule(Stage):
         self.medium.to(self.bbox.device)
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam(self.parameters(), lr=self.hparams.lr)
+        lr, grids = float(self.hparams.lr), self.grids()
+        g = grids.pop("g", None)
+        groups = [{"params": list(grids.values()), "lr": lr}]
+        if g is not None:
+            groups.append({"params": [g], "lr": lr * float(self.hparams.lr_g_factor)})
+        opt = torch.optim.Adam(groups)
         drops, drop = list(self.hparams.lr_drops), float(self.hparams.lr_drop_factor)
         final = float(self.hparams.lr_final_factor)
 
