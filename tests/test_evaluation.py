@@ -80,6 +80,23 @@ def test_ground_truth_scores_zero_mse_and_the_noise_floor(truth_eval):
         "sigma_t.vol", "albedo.vol", "medium.xml"}  # default scene: one HG g, no g grid
 
 
+def test_eval_draws_its_report_figure_into_the_folder_and_tensorboard(truth_eval):
+    """report.png (nrt.evaluation.report_figure; its content: tests/test_report_figure.py)
+    of the truth against itself, the novel sky's views at least 256 px; the same image in
+    TensorBoard."""
+    from PIL import Image
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    metrics, folder = truth_eval
+    image = np.asarray(Image.open(folder / "report.png").convert("RGB"))
+    # the slice rows (>= 128 px each; three at the least) and 3 views of >= 256 px
+    assert image.shape[0] > 3 * 128 + 3 * 256 and image.shape[1] > 3 * 256
+    acc = EventAccumulator(str(folder / "tensorboard"), size_guidance={"images": 0})
+    acc.Reload()
+    (event,) = acc.Images("eval/report")
+    assert (event.height, event.width) == image.shape[:2]
+
+
 @pytest.mark.slow
 def test_a_wrong_medium_scores_clearly_worse(truth_eval, tiny_dataset, tmp_path):
     truth, _ = truth_eval

@@ -2,7 +2,9 @@
 
 Writes into a new folder (``<run>/eval/<timestamp>-<pid>``): ``metrics.json`` and
 ``metrics.md`` (property MSEs, re-render PSNR/SSIM/LPIPS under novel illumination, the
-Monte Carlo noise floor, relighting), ``previews/*.png`` (truth | ours | error),
+Monte Carlo noise floor, relighting), ``report.png`` (slices of the medium beside the truth,
+re-renders beside the photos, the metrics; :mod:`nrt.evaluation.report_figure`),
+``previews/*.png`` (truth | ours | error),
 ``relight/*.exr|png``, the exported ``medium_grids.npz`` and Mitsuba ``volumes/``, and
 the same metrics and pictures to ``tensorboard/``. See :mod:`nrt.evaluation.evaluate`.
 """
@@ -93,6 +95,7 @@ def eval_task(cfg: DictConfig) -> dict:
     from nrt.data.grids import MEDIUM_GRIDS_FILE, resample_grids, save_property_grids
     from nrt.evaluation import evaluate
     from nrt.evaluation.images import save_png
+    from nrt.evaluation.report_figure import write_evaluation_report
     from nrt.metrics import LPIPS
     from nrt.mitsuba.export import write_medium_files
     from nrt.mitsuba.variant import select_variant
@@ -134,9 +137,13 @@ def eval_task(cfg: DictConfig) -> dict:
     (out_dir / "metrics.json").write_text(json.dumps(report, indent=1))
     (out_dir / "metrics.md").write_text(markdown(
         result.metrics, result.frames, f"nrt-eval of {medium['source']}"))
+    figure = write_evaluation_report(
+        out_dir / "report.png", grids, data.ground_truth, medium["effects"], result,
+        medium["source"], (data.spec or {}).get("name", data.root.name), **cfg.report)
     with SummaryWriter(str(out_dir / "tensorboard")) as writer:
         for key, value in result.metrics.items():
             writer.add_scalar(f"eval/{key}", value, 0)
+        writer.add_image("eval/report", figure, 0, dataformats="HWC")
         for name, panel in result.pictures.items():
             writer.add_image(f"eval/{name}", torch.as_tensor(panel).float(), 0,
                              dataformats="HWC")

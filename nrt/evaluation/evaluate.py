@@ -39,12 +39,16 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Evaluation:
-    """What an evaluation found: flat ``metrics``, per-frame rows, and pictures
-    (name -> (H, W, 3) panel in [0, 1]) for previews and TensorBoard."""
+    """What an evaluation found: flat ``metrics``, per-frame rows, pictures (name -> (H, W,
+    3) panel in [0, 1]) for previews and TensorBoard, and the re-rendered views (name ->
+    (photo, re-render), linear (H, W, 3) radiance; ``novel`` lists those under illumination
+    the medium was not fitted under) for ``report.png``."""
 
     metrics: dict[str, float] = field(default_factory=dict)
     frames: list[dict] = field(default_factory=list)
     pictures: dict[str, np.ndarray] = field(default_factory=dict)
+    renders: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    novel: list[str] = field(default_factory=list)
 
 
 def image_metrics(pred, ref, lpips: LPIPS | None = None) -> dict[str, float]:
@@ -141,7 +145,11 @@ def rerender_metrics(grids: Mapping, effects: dict, data: SceneDataset, trained:
         if floor is not None:
             row.update({f"{k}_noise_floor": v for k, v in image_metrics(floor[pos], ref).items()})
         result.frames.append(row)
-        result.pictures[f"{env}_view{frame:03d}"] = comparison_panel(ref, ours[pos])
+        name = f"{env}_view{frame:03d}"
+        result.pictures[name] = comparison_panel(ref, ours[pos])
+        result.renders[name] = (ref, np.asarray(ours[pos]))
+        if env not in trained:
+            result.novel.append(name)
     keys = [k for k in result.frames[0] if k not in ("frame", "environment", "trained_on")]
     groups = {"novel": [r for r in result.frames if not r["trained_on"]],
               "seen": [r for r in result.frames if r["trained_on"]]}
