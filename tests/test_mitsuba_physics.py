@@ -1,4 +1,4 @@
-"""The project's conventions pinned against real Mitsuba renders (DESIGN.md section 2).
+"""The project's conventions pinned against real Mitsuba renders (docs/conventions.md).
 
 Every scene is built by :func:`nrt.mitsuba.scene.scene_dict` and rendered by
 :class:`~nrt.mitsuba.render.ViewRenderer`, the code that renders the datasets, and is
@@ -150,7 +150,8 @@ def test_uv_direction_round_trip_and_axes():
     u, v = direction_to_uv(d)
     assert bool(((u >= 0) & (u < 1) & (v >= 0) & (v <= 1)).all())
     torch.testing.assert_close(uv_to_direction(u, v), d, rtol=0, atol=1e-12)
-    # DESIGN.md: d = (sin t sin 2 pi u, cos t, -sin t cos 2 pi u), t = pi v, row 0 is +Y
+    # docs/conventions.md, "Environment maps": row 0 is +Y,
+    # d = (sin t sin 2 pi u, cos t, -sin t cos 2 pi u), t = pi v
     axes = torch.tensor([[0, 0, -1], [1, 0, 0], [0, 0, 1], [-1, 0, 0], [0, 1, 0]],
                         dtype=torch.float64)
     u, v = direction_to_uv(axes)

@@ -63,7 +63,7 @@ def unit_vectors(n: int, dtype=torch.float32, generator=None) -> torch.Tensor:
 
 
 def hg_reference(cos: torch.Tensor, g: float) -> torch.Tensor:
-    """DESIGN.md's HG formula, written out here rather than imported."""
+    """The HG formula (docs/conventions.md, "Phase function"), written out, not imported."""
     return (1 - g * g) / (4 * math.pi * (1 + g * g - 2 * g * cos) ** 1.5)
 
 
@@ -327,7 +327,8 @@ def test_inscatter_g_gradient_is_unbiased(g0):
     ``d/dg int f_g(w . w') L(x, w') dw'``, including at g = 0 and in the series branch
     (|g| < 1e-2), where a wrong ``d cos / d g`` would bias it.
 
-    Reference: autograd through the 64 x 128 quadrature of DESIGN.md's HG formula
+    Reference: autograd through the 64 x 128 quadrature of the HG formula
+    (docs/conventions.md, "Phase function")
     (error < 1e-12, see the unbiasedness test above). Estimate: 40 independent calls with
     1000 directions per point, i.e. 40 i.i.d. batch means; ``|mean - ref| <= 5 se`` per
     point (8 points, t(39) tail: a correct estimator fails with probability ~1e-4). The
@@ -397,9 +398,10 @@ def test_hg_cosines_follow_the_hg_density(g):
     probabilities ``2 pi int f(cos) dcos`` of ``hg_phase``, integrated with 4000-point
     midpoint rules per bin (relative error < 1e-5 even at g = 0.9, whose peak has width
     ~(1 - g)^2 / g ~ 0.01 >> the 1.25e-5 step); the integrated probabilities must sum to
-    1 within 1e-5 (normalisation of hg_phase) and match DESIGN.md's formula. Pearson's
-    statistic must stay below the 0.999 quantile of chi-square(39): a correct sampler
-    fails with probability 1e-3, a wrong lobe sign or a missing (1 - g^2) by thousands.
+    1 within 1e-5 (normalisation of hg_phase) and match the HG formula (docs/conventions.md,
+    "Phase function"). Pearson's statistic must stay below the 0.999 quantile of
+    chi-square(39): a correct sampler fails with probability 1e-3, a wrong lobe sign or a
+    missing (1 - g^2) by thousands.
     The sample mean cosine must be g (HG's defining moment) within 5 standard errors.
     ``sample_hg`` turns the same cosines into directions: for random unit travel directions
     w its outputs are unit vectors whose cosine with w is ``sample_hg_cos``'s (float64
@@ -628,7 +630,8 @@ def test_medium_exponents_are_clamped(fill):
 
 
 def texel_dirs(h: int, w: int) -> torch.Tensor:
-    """DESIGN.md's texel placement: row j at t = pi j / (H - 1), column i at u = (i+.5)/W,
+    """The texel placement of docs/conventions.md ("Environment maps"): row j at
+    t = pi j / (H - 1), column i at u = (i+.5)/W,
     d = (sin t sin 2 pi u, cos t, -sin t cos 2 pi u)."""
     t = math.pi * torch.arange(h, dtype=torch.float64) / (h - 1)
     u = (torch.arange(w, dtype=torch.float64) + 0.5) / w
@@ -648,7 +651,7 @@ def test_split_sun_conserves_radiance_and_sun_power():
       their colour (scaled by threshold / luminance), all others are unchanged;
     - E_rest + the excess (computed here) == the original texelwise;
     - each sun direction is within one texel (pi / (H - 1)) of the power-weighted mean of
-      its texels' directions (DESIGN.md's formula, written out here);
+      its texels' directions (docs/conventions.md, "Environment maps", written out here);
     - each irradiance equals sum(excess x sin(t_j) (pi / (H - 1)) (2 pi / W)) (rtol 1e-5:
       float32 output of a float64 sum);
     - with max_suns = 1 the dimmer sun stays in E_rest unchanged; a map without anything
@@ -717,7 +720,7 @@ def test_direct_inscatter_closed_forms(g):
     - point light outside the box: ``f I exp(-sigma_t t_exit) / d^2`` (only the part of
       the segment inside the box attenuates).
 
-    f is DESIGN.md's HG formula in directions of travel (light travels along -l, so
+    f is the HG formula of docs/conventions.md in directions of travel (light travels along -l, so
     cos = -l . w; g > 0 favours w ~ -l). Only float32 rounding differs: rtol 1e-5.
     """
     torch.manual_seed(70)

@@ -2,7 +2,7 @@
 scene's effects call for, and their middle slices.
 
 A medium here is a mapping of property name to a float32 array indexed ``[z, y, x]`` (cell
-centres, DESIGN.md section 2), per unit world length: ``sigma_a``, ``sigma_s`` (..., 3),
+centres, docs/conventions.md, "Grids"), per unit world length: ``sigma_a``, ``sigma_s`` (..., 3),
 ``sigma_t`` (..., 3), or (...) for a grey extinction, and ``g`` (...). A property-grid file
 (``medium_grids.npz`` of stage 2 and the baseline, a dataset's ``ground_truth.npz``) gives
 all four; stage 1's ``density_grid.npz`` gives ``sigma_t`` alone, grey.

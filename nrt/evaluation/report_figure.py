@@ -5,9 +5,9 @@ plane the scene has (:func:`nrt.evaluation.media.planes`), the middle slices acr
 and x of the recovered medium, the truth and the signed error on the plane's shared scale
 (:mod:`nrt.evaluation.slices`). Below: held-out views re-rendered under novel illumination
 beside their photos and an error map, log-tonemapped and scaled by the photo's maximum as
-the image metrics are (DESIGN.md section 2), upscaled by nearest neighbour to at least
-:data:`VIEW_PX` pixels. Without ground truth the truth and error slices are left out and
-the caption says so.
+the image metrics are (docs/conventions.md, "Image comparison"), upscaled by nearest
+neighbour to at least :data:`VIEW_PX` pixels. Without ground truth the truth and error
+slices are left out and the caption says so.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Tonemaps for comparing HDR images (DESIGN.md section 2)."""
+"""Tonemaps for comparing HDR images (docs/conventions.md, "Image comparison")."""
 
 from __future__ import annotations
 

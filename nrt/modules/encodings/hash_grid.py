@@ -6,7 +6,7 @@ densely (``x + y (N+1) + z (N+1)^2``); finer levels hash the vertex with tiny-cu
 primes ``(1, 2654435761, 805459861)``: ``(x * p0 ^ y * p1 ^ z * p2) mod T``. Features are
 trilinearly interpolated and concatenated over levels. The tables are one flat parameter
 gathered with ``index_select`` (its backward is ``index_add_``, far faster on CPU than an
-embedding's dense backward, DESIGN.md section 4).
+embedding's dense backward, docs/conventions.md, "Runtime").
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Media of stage 2: ``x -> (sigma_a, sigma_s, g)``, built for exactly the scene's effects.
 
-Heads follow the scene's declared effects (DESIGN.md "simulate only what a scene calls
-for"): ``phase=isotropic`` has no g at all, ``phase=hg`` one shared learnable g,
+Heads follow the scene's declared effects (docs/conventions.md, "Scene effects"):
+``phase=isotropic`` has no g at all, ``phase=hg`` one shared learnable g,
 ``phase=varying_hg`` a g field. Extinction is RGB, or with ``chromatic=false`` grey: one
 sigma_t channel with an RGB albedo, as the scene spec draws it, Mitsuba renders it (a
 one-channel ``sigma_t`` grid, a three-channel ``albedo``) and ``stage=dpt`` fits it.

@@ -7,7 +7,7 @@ its renderers use; a stage builds its components through :func:`build`, which ch
 Common to every light field: the buffers ``bbox`` (2, 3), the medium box, and
 ``radiance_scale`` (), the training environment's mean radiance, both registered by the
 field (``register_buffer``) and filled by the stage in ``setup``. Directions are directions
-of travel (DESIGN.md section 2); radiance is linear RGB, (..., 3).
+of travel (docs/conventions.md, "Directions and radiance"); radiance is linear RGB, (..., 3).
 """
 
 from __future__ import annotations

@@ -96,7 +96,7 @@ class SHGrid:
 class SHGridLightField(nn.Module):
     """``L_s(x, w)`` (..., 3) from SH coefficients of ``degree`` on ``resolution``^3 cells.
     With the scene's ``effects``, an isotropic phase keeps band 0 only: its in-scattering
-    reads no other band (DESIGN.md: simulate only what the scene calls for). The methods are
+    reads no other band (docs/conventions.md, "Scene effects"). The methods are
     :class:`SHGrid`'s, on the field's parameters."""
 
     def __init__(self, degree: int = 2, resolution: int = 16, effects: dict | None = None):

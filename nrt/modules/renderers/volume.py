@@ -4,7 +4,7 @@
 and exit of the box, stratified jittered samples, per-channel extinction; ``S_i`` is the
 in-scattered radiance toward the camera (travel direction ``-v``) estimated from the light
 field, plus the first scattering of known lights (emitters, sun) when the scene has them. The
-transmitted background ``T_N E(v)`` is part of the sum (DESIGN.md section 2).
+transmitted background ``T_N E(v)`` is part of the sum (docs/conventions.md, "Transport equations").
 """
 
 from __future__ import annotations
