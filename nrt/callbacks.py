@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+import io
 import logging
+import random
 import time
+from pathlib import Path
 
 import lightning as L
 import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
+from lightning.pytorch.callbacks import ModelCheckpoint
 
 from nrt.errors import ConfigError
+from nrt.files import TEMP_MARK, atomic_write, writing
 from nrt.modules.stages.schedules import RunClock
 from nrt.modules.stages.stage import Stage
 
@@ -151,7 +157,7 @@ class HeldOutImageMetrics(L.Callback):
 
 
 class PropertyMetrics(L.Callback):
-    """Medium-property MSE x 10^2 against the dataset's ground truth (DESIGN.md section 3).
+    """Medium-property MSE x 10^2 against the truth (docs/conventions.md, "Property metrics").
 
     For a stage that learns a medium (:meth:`nrt.modules.stages.stage.Stage.property_grids` is not
     None) and a dataset with ``ground_truth.npz``: ``val/mse_{sigma_a,sigma_s,sigma_t}_x100``
@@ -315,3 +321,80 @@ class RerenderEvaluation(L.Callback):
         for key, value in result.metrics.items():
             if key.startswith(("psnr_", "ssim_")) and "_env_" not in key:
                 pl_module.log(f"eval/{key}", value)
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Writes each checkpoint to a temporary file beside it, flushed to disk and renamed
+    over the old one (:func:`nrt.files.atomic_write`): a process killed or a disk filled
+    while ``last.ckpt`` is written leaves the previous ``last.ckpt`` whole, which
+    ``resume=true`` continues from (and the next save removes the killed write's temporary
+    file). A failed write is a :class:`~nrt.errors.WriteError` naming the checkpoint."""
+
+    def save_checkpoint(self, checkpoint: dict, path, storage_options=None) -> None:
+        path = Path(path)
+        left = (f"every checkpoint saved before it in '{path.parent}' is whole: once there "
+                "is space, the same command with resume=true continues from last.ckpt")
+        with writing("the checkpoint", path, left):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            for stale in path.parent.glob(f".{path.name}{TEMP_MARK}*"):  # of a killed run
+                stale.unlink(missing_ok=True)
+        buffer = io.BytesIO()  # serialised first: a failed write then raises OSError itself
+        torch.save(checkpoint, buffer)
+        with atomic_write(path, "the checkpoint", left=left) as f:
+            f.write(buffer.getbuffer())
+
+
+class RandomState(L.Callback):
+    """Keeps the global random generators (torch's and Python's; nrt draws nothing from
+    NumPy's global one) in each checkpoint and puts them back when a resumed run starts
+    training, so that it draws the numbers the run left alone would have drawn (the ray
+    batches follow generators of their own: :meth:`nrt.data.datamodule.RandomRays.resume_at`)."""
+
+    def __init__(self) -> None:
+        self._loaded: dict | None = None
+
+    def state_dict(self) -> dict:
+        return {"torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+                "python": random.getstate()}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self._loaded = state_dict
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        if self._loaded is None:
+            return
+        state, self._loaded = self._loaded, None
+        torch.set_rng_state(state["torch"])
+        if state["cuda"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["cuda"])
+        random.setstate(state["python"])
+
+
+class LastCheckpoint(ModelCheckpoint):
+    """``checkpoints/last.ckpt`` every ``every_n_train_steps`` steps; a step that validation
+    follows (the last of an epoch) is saved once validation has ended, so that the
+    checkpoint holds the random generators as the run goes on from it (validation draws
+    from them too) and a run resumed from it continues exactly (:class:`RandomState`).
+    Give it ``save_on_train_epoch_end: false``."""
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        due = self._every_n_train_steps >= 1 and \
+            trainer.global_step % self._every_n_train_steps == 0
+        if due and _validates_next(trainer):
+            self._defer_save_until_validation = True  # ModelCheckpoint saves at validation end
+            return
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if self._defer_save_until_validation:  # validation did not come after all
+            self._defer_save_until_validation = False
+            self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+
+
+def _validates_next(trainer) -> bool:
+    """Whether validation runs after the batch just trained on: the last of an epoch that
+    validates (as Lightning's own ModelCheckpoint tells it)."""
+    every = trainer.check_val_every_n_epoch or 1
+    last = getattr(trainer.fit_loop.epoch_loop.batch_progress, "is_last_batch", False)
+    return bool(trainer.enable_validation) and last and (trainer.current_epoch + 1) % every == 0

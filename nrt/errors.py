@@ -20,3 +20,9 @@ class SceneError(NrtError):
 class ConfigError(NrtError, ValueError):
     """A config key holds a value a component cannot take (a count below 1, an unknown
     name). Also a ``ValueError``, which components raised for these before."""
+
+
+class WriteError(NrtError, OSError):
+    """A file could not be written (a full disk, a read-only or vanished folder): the
+    message names what was being written, where, and what is left behind. Also an
+    ``OSError``, which it wraps."""

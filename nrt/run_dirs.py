@@ -25,6 +25,8 @@ import shutil
 import time
 from pathlib import Path
 
+from nrt.files import check_output_folder, write_text_atomic
+
 LAST_CKPT = Path("checkpoints") / "last.ckpt"
 RUN_FILE = "run.json"
 """What nrt-train records about a run (stage, scene, dataset, environments, exports)."""
@@ -39,8 +41,11 @@ _tags: dict[str, str] = {}
 _created: dict[Path, Path] = {}  # folder new_run_dir named -> its nearest existing ancestor
 
 
-def new_run_dir(base: str | Path) -> str:
-    """``<base>/<timestamp>-<pid>``: unique, so runs never overwrite each other."""
+def new_run_dir(base: str | Path, key: str = "paths.output_dir") -> str:
+    """``<base>/<timestamp>-<pid>``: unique, so runs never overwrite each other. A ``base``
+    that cannot be created or written (a file, a read-only folder) is refused, naming the
+    config key ``key`` it comes from, before Hydra creates the folder."""
+    check_output_folder(base, key)
     path = f"{base}/{time.strftime('%Y-%m-%d_%H-%M-%S')}-{os.getpid()}"
     folder = Path(os.path.abspath(path))
     _created[folder] = next(p for p in folder.parents if p.exists())
@@ -169,9 +174,10 @@ def read_run_info(run_dir: str | Path) -> dict:
 
 
 def write_run_info(run_dir: str | Path, **info) -> None:
-    """Merge ``info`` into the run folder's ``run.json``."""
-    (Path(run_dir) / RUN_FILE).write_text(json.dumps({**read_run_info(run_dir), **info},
-                                                     indent=1))
+    """Merge ``info`` into the run folder's ``run.json`` (replaced atomically)."""
+    write_text_atomic(Path(run_dir) / RUN_FILE,
+                      json.dumps({**read_run_info(run_dir), **info}, indent=1),
+                      "the run record")
 
 
 def eval_dir(run, output_dir: str, kind: str = "eval") -> str:
@@ -181,4 +187,7 @@ def eval_dir(run, output_dir: str, kind: str = "eval") -> str:
     existing folder. ``kind`` is ``eval`` (nrt-eval) or ``sample`` (nrt-sample)."""
     given = run not in (None, "", "None") and Path(str(run)).expanduser().is_dir()
     base = (Path(str(run)).expanduser() if given else Path(output_dir)) / str(kind)
-    return _chosen.setdefault((str(kind), str(base)), new_run_dir(base))
+    key = (str(kind), str(base))
+    if key not in _chosen:
+        _chosen[key] = new_run_dir(base, "run" if given else "paths.output_dir")
+    return _chosen[key]

@@ -16,7 +16,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "nrt"
 
 LAYERS: list[tuple[str, ...]] = [
-    ("nrt.errors",),
+    ("nrt.errors", "nrt.files"),
     ("nrt.physics", "nrt.cameras"),
     ("nrt.mitsuba",),
     ("nrt.weights", "nrt.metrics", "nrt.run_dirs", "nrt.tensorboard"),

@@ -87,9 +87,48 @@ def check_budget(cfg: DictConfig) -> None:
     for key in RUN_COUNTS:
         if not _is_count(OmegaConf.select(cfg, key), 1):
             raise _count_error(key, OmegaConf.select(cfg, key), 1)
-    if cfg.budget_s is not None and (not _is_number(cfg.budget_s) or cfg.budget_s <= 0):
-        raise ConfigError(f"budget_s={cfg.budget_s}: must be a positive number of seconds of "
-                       "training (or null for no time limit).")
+    _check_option(cfg, "budget_s")
+
+
+SEEDS = 2**32
+"""Seeds are whole numbers below this (what NumPy and Lightning accept)."""
+
+_ABSENT = object()
+
+
+def _is_seed(value) -> bool:
+    return _is_count(value, 0) and value < SEEDS
+
+
+OPTIONS: dict[str, tuple[str, Callable[[object], bool]]] = {
+    "seed": ("a whole number in [0, 2^32), the seed of every random draw of the run",
+             _is_seed),
+    "resume": ("false, true (continue the newest run of this scene and stage) or the path "
+               "of a .ckpt file", lambda v: v is None or isinstance(v, bool | str)),
+    "render.progress": ("true or false (a progress bar while rendering)",
+                        lambda v: isinstance(v, bool)),
+    "render.variant": ("a Mitsuba variant name (auto, llvm_ad_rgb, cuda_ad_rgb, scalar_rgb)",
+                       lambda v: isinstance(v, str)),
+    "budget_s": ("a positive number of seconds of training (or null for no time limit)",
+                 lambda v: v is None or (_is_number(v) and v > 0)),
+}
+"""The scalar options of the root configs, what each must be, and the test of it."""
+
+
+def check_options(cfg: DictConfig) -> None:
+    """Refuse a scalar option of the root config (:data:`OPTIONS`: ``seed=abc``,
+    ``render.progress=maybe``) that no run can use, naming the key, before anything is
+    built or loaded; options a command does not have are skipped."""
+    for key in OPTIONS:
+        _check_option(cfg, key)
+
+
+def _check_option(cfg: DictConfig, key: str) -> None:
+    what, valid = OPTIONS[key]
+    value = OmegaConf.select(cfg, key, default=_ABSENT)
+    if value is not _ABSENT and not valid(value):
+        raise ConfigError(f"{key}={_text(value)}: must be {what}. Fix the override, or "
+                          "leave the key to its default (`--cfg job` prints the config).")
 
 
 def check_objectives(cfg: DictConfig) -> dict[str, type]:

@@ -1,9 +1,11 @@
 """What every nrt command does before and around its Hydra task.
 
 - registers the OmegaConf resolvers the configs use (``nrt_pid``, ``nrt_run_dir``,
-  ``nrt_sweep_dir``, ``nrt_job_subdir``, ``nrt_eval_dir``, ``nrt_resume_tag``);
+  ``nrt_sweep_dir``, ``nrt_job_subdir``, ``nrt_eval_dir``, ``nrt_resume_tag``, and
+  ``nrt_name`` and ``nrt_folder``, which refuse a name that would leave the output folder
+  and a folder that cannot take files, before Hydra creates any folder);
 - tunes glibc malloc so large per-step temporaries are reused instead of being mmap'd
-  and unmapped every step (DESIGN.md section 4: 3-4x faster training steps on CPU);
+  and unmapped every step (docs/conventions.md, "Runtime"; 3-4x faster training steps on CPU);
 - lets idle OpenMP threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``, unless set):
   on a machine whose cores are shared, spinning threads made a training step 10x slower
   (2.2 s against 0.19 s, measured with another process busy on one of two cores);
@@ -12,7 +14,8 @@
   interpolation, a ``_target_`` that cannot be built: :mod:`nrt.cli.config_errors`) into a
   one-paragraph ``nrt: error:`` message and exit status 2 instead of a traceback, and
   removes the run folder such a failed start created
-  (:func:`nrt.run_dirs.discard_failed_start`).
+  (:func:`nrt.run_dirs.discard_failed_start`); output that cannot be written (a full disk)
+  ends the same way, naming the file (:mod:`nrt.files`).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from nrt import run_dirs
 from nrt.cli.config_errors import config_mistake
 from nrt.errors import NrtError
+from nrt.files import check_name, check_output_folder, write_failure
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +81,17 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("nrt_job_subdir", run_dirs.job_subdir)
     if not OmegaConf.has_resolver("nrt_resume_tag"):
         OmegaConf.register_new_resolver("nrt_resume_tag", run_dirs.resume_tag)
+    if not OmegaConf.has_resolver("nrt_name"):
+        OmegaConf.register_new_resolver("nrt_name", lambda key, value: check_name(key, value))
+    if not OmegaConf.has_resolver("nrt_folder"):
+        OmegaConf.register_new_resolver("nrt_folder", _checked_folder)
+
+
+def _checked_folder(key: str, folder: str) -> str:
+    """Resolver ``${nrt_folder:key,folder}``: ``folder`` once :func:`check_output_folder`
+    found that files can be created in it."""
+    check_output_folder(folder, key)
+    return folder
 
 
 def _log_to_files(message: str) -> None:
@@ -124,11 +139,16 @@ def run_app(task: Callable[[DictConfig], object], config_name: str,
         _set_env(FULL_ERROR, user_full_error)
         try:
             try:
-                # every interpolation resolves, or the mistake names its key, before the task
+                # every interpolation resolves, or the mistake names its key, and every
+                # scalar option holds a value a run can use, before the task
                 OmegaConf.to_container(cfg, resolve=True)
+                from nrt.cli.checks import check_options  # checks reads CONFIG_DIR from here
+
+                check_options(cfg)
                 result = task(cfg)
             except Exception as exc:
-                mistake = config_mistake(exc, command)
+                mistake = config_mistake(exc, command) or \
+                    write_failure(exc, HydraConfig.get().runtime.output_dir)
                 if mistake is None:
                     raise
                 raise mistake from None

@@ -138,6 +138,16 @@ def _instantiation(exc: InstantiationException, command: str) -> NrtError | None
     return None
 
 
+def _raised_by_nrt(exc: BaseException) -> NrtError | None:
+    """The :class:`NrtError` that nrt's own resolver raised while OmegaConf resolved an
+    interpolation (``${nrt_run_dir:...}`` refusing a scene name), which OmegaConf wraps."""
+    seen = exc.__cause__ or exc.__context__
+    while isinstance(seen, InterpolationResolutionError):
+        seen = seen.__cause__ or seen.__context__
+    return seen if isinstance(seen, NrtError) and \
+        isinstance(exc, InterpolationResolutionError) else None
+
+
 def config_mistake(exc: BaseException, command: str) -> NrtError | None:
     """``exc`` as the user's config mistake (a :class:`ConfigError` naming the key and the
     fix; a component's own :class:`NrtError` unwrapped from Hydra's instantiation error),
@@ -146,6 +156,9 @@ def config_mistake(exc: BaseException, command: str) -> NrtError | None:
     nrt's code is a bug."""
     if isinstance(exc, NrtError):
         return exc
+    raised = _raised_by_nrt(exc)
+    if raised is not None:
+        return raised
     if isinstance(exc, InstantiationException):
         return _instantiation(exc, command)
     if isinstance(exc, OverrideParseException):

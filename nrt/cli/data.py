@@ -12,9 +12,11 @@ from __future__ import annotations
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import run_app
+from nrt.files import check_name
 
 
 def render_task(cfg: DictConfig) -> str:
+    check_name("scene.name", cfg.scene.name)  # at once, before the rendering stack loads
     from nrt.data.family import ensure_family
     from nrt.data.render import ensure_dataset
 

@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from nrt.cli.checks import check_arguments, check_budget, check_mode, check_objectives
 from nrt.cli.common import run_app
 from nrt.errors import NrtError
+from nrt.files import check_output_folder, write_text_atomic
 from nrt.run_dirs import (
     LAST_CKPT,
     latest_run_with_checkpoint,
@@ -101,7 +102,8 @@ def save_config(cfg: DictConfig, run_dir: Path) -> None:
     resolved (the EA checkpoint)."""
     subdir = HydraConfig.get().output_subdir
     if subdir is not None:
-        (run_dir / str(subdir) / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+        write_text_atomic(run_dir / str(subdir) / "config.yaml", OmegaConf.to_yaml(cfg),
+                          "the run's config")
 
 
 def train_task(cfg: DictConfig) -> dict:
@@ -111,11 +113,14 @@ def train_task(cfg: DictConfig) -> dict:
     from nrt.data.render import ensure_dataset
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    L.seed_everything(cfg.seed, workers=True)
+    L.seed_everything(cfg.seed, workers=True)  # a seed run_app checked (nrt.cli.checks)
     # What the config alone decides is refused before any rendering or data loading:
-    # counts no run can use, a missing EA run or resume checkpoint, and the checks of the
-    # model and callbacks themselves (e.g. stage 2 on truncated scattering orders).
+    # counts no run can use, a dataset cache that cannot take files, a missing EA run or
+    # resume checkpoint, and the checks of the model and callbacks themselves (e.g. stage
+    # 2 on truncated scattering orders).
     check_budget(cfg)
+    if not OmegaConf.select(cfg, "scene.path"):
+        check_output_folder(cfg.paths.data_dir, "paths.data_dir")
     check_objectives(cfg)
     check_mode(cfg)
     check_arguments(cfg, HydraConfig.get().runtime.choices)

@@ -52,18 +52,29 @@ class RandomRays(IterableDataset):
                  members: torch.Tensor | None = None, twins: int = 0):
         self.data, self.batch_size, self.steps, self.seed = data, batch_size, steps, seed
         self.members, self.twins = members, max(0, min(int(twins), batch_size))
-        self.epoch = 0
+        self.epoch, self.skip = 0, 0
+
+    def resume_at(self, epoch: int, batches_done: int) -> None:
+        """Continue a resumed run in ``epoch`` after its first ``batches_done`` batches: the
+        next pass yields the rest of that epoch (nothing when it is complete), the batches
+        a run left alone draws."""
+        self.epoch, self.skip = int(epoch), max(0, int(batches_done))
 
     def __iter__(self):
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
         g_twin = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) ^ (1 << 40))
         self.epoch += 1
+        skip, self.skip = self.skip, 0
         n, h, w = self.data.images.shape[:3]
-        for _ in range(self.steps):
+        for i in range(self.steps):
             flat = torch.randint(0, n * h * w, (self.batch_size,), generator=g)
+            jitter = torch.rand(self.batch_size, 2, generator=g)
+            if i < skip:  # drawn and dropped: the generators stay on the run's course
+                if self.twins:
+                    torch.rand(self.twins, 2, generator=g_twin)
+                continue
             img, pix = flat // (h * w), flat % (h * w)
             row, col = pix // w, pix % w
-            jitter = torch.rand(self.batch_size, 2, generator=g)
             o, d = camera_rays(self.data.c2w[img], self.data.intrinsics,
                                col + jitter[:, 0], row + jitter[:, 1])
             env = self.data.env_index[img]
@@ -171,9 +182,15 @@ class RayDataModule(L.LightningDataModule):
                 "environments": self.train_data.environments_used()}
 
     def train_dataloader(self) -> DataLoader:
-        return DataLoader(RandomRays(self.train_data, self.batch_size, self.steps_per_epoch,
-                                     self.seed, self.train_members, self.twins),
-                          batch_size=None)
+        """Random ray batches; a resumed run continues where its checkpoint left them (one
+        batch an optimizer step, as every stage takes)."""
+        rays = RandomRays(self.train_data, self.batch_size, self.steps_per_epoch, self.seed,
+                          self.train_members, self.twins)
+        trainer = self.trainer
+        if trainer is not None and trainer.global_step:
+            epoch = trainer.current_epoch
+            rays.resume_at(epoch, trainer.global_step - epoch * self.steps_per_epoch)
+        return DataLoader(rays, batch_size=None)
 
     def val_dataloader(self) -> DataLoader:
         return DataLoader(HeldOutImages(self.val_data, self.val_views, self.val_members),

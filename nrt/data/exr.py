@@ -11,13 +11,17 @@ from nrt.errors import DatasetError
 
 
 def write_exr(path: str | Path, rgb: np.ndarray) -> None:
-    """Write an (H, W, 3) array as a float32, ZIP-compressed scanline EXR."""
+    """Write an (H, W, 3) array as a float32, ZIP-compressed scanline EXR; a failed write
+    (a full disk) raises ``OSError``."""
     rgb = np.ascontiguousarray(rgb, dtype=np.float32)
     if rgb.ndim != 3 or rgb.shape[-1] != 3:
         raise ValueError(f"write_exr expects (H, W, 3), got {rgb.shape}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with OpenEXR.File(header, {"RGB": rgb}) as f:
-        f.write(str(path))
+    try:
+        with OpenEXR.File(header, {"RGB": rgb}) as f:
+            f.write(str(path))
+    except RuntimeError as exc:  # OpenEXR reports a failed write (a full disk) this way
+        raise OSError(f"{exc}".strip()) from exc
 
 
 def read_exr(path: str | Path) -> np.ndarray:

@@ -40,6 +40,7 @@ from tqdm import tqdm
 from nrt.data.render import dataset_folder, ensure_rendered, is_rendered
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import DatasetError, SceneError
+from nrt.files import check_name, write_text_atomic, writing
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +160,7 @@ def ensure_family(scene_cfg: Mapping, data_root: str | Path, variant: str = "aut
     the dataset cache (every member is checked before the first is rendered) and writing
     ``family.json`` once all are complete. A progress bar counts members."""
     data_root = Path(data_root)
+    check_name("scene.name", scene_cfg["name"], SceneError)
     specs = [resolve_scene(member) for member in member_scenes(scene_cfg)]
     manifest = _manifest(str(scene_cfg["name"]), specs, data_root)
     folder = data_root / f"{manifest['name']}-{manifest['hash']}"
@@ -169,10 +171,10 @@ def ensure_family(scene_cfg: Mapping, data_root: str | Path, variant: str = "aut
         ensure_rendered(spec, data_root, variant=variant, progress=progress)
     bar.close()
     if not (folder / FAMILY_FILE).is_file():
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = folder / f".{FAMILY_FILE}.partial-{os.getpid()}"
-        tmp.write_text(json.dumps(manifest, indent=1))
-        os.replace(tmp, folder / FAMILY_FILE)
+        with writing("the family folder", folder):
+            folder.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(folder / FAMILY_FILE, json.dumps(manifest, indent=1),
+                          "the family record")
     log.info("Family '%s' of %d members: %d rendered in %.1f s, %d reused from the cache: %s",
              manifest["name"], len(specs), missing, time.perf_counter() - start,
              len(specs) - missing, folder)

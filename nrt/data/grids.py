@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from nrt.errors import DatasetError
+from nrt.files import atomic_write
 from nrt.physics.volume import resample_cells
 
 PROPERTY_KEYS = ("sigma_a", "sigma_s", "g")
@@ -24,12 +25,14 @@ MEDIUM_GRIDS_FILE = "medium_grids.npz"
 
 
 def save_property_grids(path: str | Path, grids: Mapping, bbox) -> Path:
-    """Write ``grids`` (tensors or arrays) and ``bbox`` as float32 into ``path`` (.npz)."""
+    """Write ``grids`` (tensors or arrays) and ``bbox`` as float32 into ``path`` (.npz),
+    replacing it atomically (:func:`nrt.files.atomic_write`)."""
     path = Path(path)
     arrays = {k: np.asarray(torch.as_tensor(grids[k]).detach().cpu(), np.float32)
               for k in PROPERTY_KEYS}
     bbox = np.asarray(torch.as_tensor(bbox).detach().cpu(), np.float32)
-    np.savez_compressed(path, bbox=bbox, **arrays)
+    with atomic_write(path, "the property grids") as f:
+        np.savez_compressed(f, bbox=bbox, **arrays)
     return path
 
 

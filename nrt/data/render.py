@@ -32,6 +32,7 @@ from nrt.data.media import medium_grids
 from nrt.data.sky import sky_map
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import DatasetError, SceneError
+from nrt.files import TEMP_MARK, writing
 from nrt.mitsuba.render import ViewRenderer
 from nrt.mitsuba.scene import scene_dict
 from nrt.mitsuba.variant import select_variant
@@ -89,17 +90,20 @@ def render_dataset(spec: dict, out_dir: str | Path, variant: str = "auto",
     rigs, intr = camera_rig(spec)  # validates the rig before any work or file is made
     mi = select_variant(variant)
     start = time.perf_counter()
-    tmp = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
+    tmp = out_dir.with_name(f".{out_dir.name}{TEMP_MARK}{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        n_images = _render_into(tmp, spec, rigs, intr, mi, progress)
-        seconds = time.perf_counter() - start
-        info = {"spec": spec, "spec_hash": spec_hash(spec),
-                "renderer": {"mitsuba": mi.__version__, "variant": mi.variant(),
-                             "seconds": round(seconds, 2), "images": n_images}}
-        with open(tmp / "scene.json", "w") as f:
-            json.dump(info, f, indent=1)
-        _move_into_place(tmp, out_dir)
+        with writing(f"the dataset of scene '{spec['name']}' into", tmp,
+                     left=f"nothing of it is kept, and the next nrt-data or nrt-train renders "
+                          f"it again into '{out_dir}'"):
+            n_images = _render_into(tmp, spec, rigs, intr, mi, progress)
+            seconds = time.perf_counter() - start
+            info = {"spec": spec, "spec_hash": spec_hash(spec),
+                    "renderer": {"mitsuba": mi.__version__, "variant": mi.variant(),
+                                 "seconds": round(seconds, 2), "images": n_images}}
+            with open(tmp / "scene.json", "w") as f:  # written last: marks the folder complete
+                json.dump(info, f, indent=1)
+            _move_into_place(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # still here only if failed or redundant
     log.info("Rendered %d images of '%s' in %.1f s with Mitsuba %s (%s) into %s",
@@ -151,7 +155,11 @@ def _move_into_place(tmp: Path, out_dir: Path) -> None:
         log.warning("Replacing the incomplete dataset folder %s (it has no scene.json)", out_dir)
         shutil.rmtree(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(tmp, out_dir)
+    try:
+        os.replace(tmp, out_dir)
+    except OSError:
+        if not (out_dir / "scene.json").is_file():  # else a concurrent render moved first
+            raise
 
 
 def is_rendered(spec: dict, data_root: str | Path) -> bool:

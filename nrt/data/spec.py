@@ -19,6 +19,7 @@ import numpy as np
 
 from nrt.data.sky import draw_sky_params
 from nrt.errors import SceneError
+from nrt.files import check_name
 
 FORMAT_VERSION = 2
 """Bumped whenever rendering or the dataset layout changes meaning (invalidates caches).
@@ -137,7 +138,10 @@ def _resolve_environments(env: Mapping) -> dict[str, dict]:
 
 
 def resolve_scene(scene: Mapping[str, Any]) -> dict:
-    """Draw every random quantity of a scene config; the result is JSON-serialisable."""
+    """Draw every random quantity of a scene config; the result is JSON-serialisable. The
+    name, which names the dataset folder, must keep it inside the cache
+    (:func:`nrt.files.check_name`)."""
+    check_name("scene.name", scene["name"], SceneError)
     effects = scene["effects"]
     _require(effects["phase"] in PHASES, "effects.phase",
              f"must be one of {PHASES}, got '{effects['phase']}'")

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from nrt.errors import ConfigError, NrtError
+from nrt.files import atomic_write, writing
 from nrt.metrics import density_agreement
 from nrt.modules.fields.protocols import DensityField, build
 from nrt.modules.renderers.emission_absorption import render_rays
@@ -193,10 +194,13 @@ class EAModule(Stage):
     def write_density_grid(self, path: Path, resolution: int,
                            latent: torch.Tensor | None = None) -> str:
         """Write ``density_grid.npz`` (``density`` [z, y, x] per unit length, ``bbox``) of
-        the field (under ``latent``) at ``resolution`` cells per axis to ``path``."""
-        path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, density=self.density_grid(resolution, latent).cpu().numpy(),
-                            bbox=self.field.bbox.cpu().numpy())
+        the field (under ``latent``) at ``resolution`` cells per axis to ``path``, replaced
+        atomically."""
+        density = self.density_grid(resolution, latent).cpu().numpy()
+        with writing("the density grid", path):
+            path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path, "the density grid") as f:
+            np.savez_compressed(f, density=density, bbox=self.field.bbox.cpu().numpy())
         return str(path)
 
     def export(self, run_dir: str | Path) -> dict[str, str]:

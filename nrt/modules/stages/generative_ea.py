@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError, DatasetError, NrtError
+from nrt.files import atomic_write
 from nrt.modules.fields.protocols import DensityField
 from nrt.modules.stages.components import factory_config
 from nrt.modules.stages.ea import (
@@ -158,8 +159,9 @@ def save_latents(run_dir: str | Path, codes: torch.Tensor, names: list[str],
     """Write ``latents.npz`` (``codes`` (K, d_z), the members' ``names`` and ``seeds``)
     into ``run_dir``; returns its path."""
     path = Path(run_dir) / LATENTS_FILE
-    np.savez(path, codes=codes.detach().cpu().numpy(), names=np.array(names),
-             seeds=np.array(seeds))
+    with atomic_write(path, "the latent codes") as f:
+        np.savez(f, codes=codes.detach().cpu().numpy(), names=np.array(names),
+                 seeds=np.array(seeds))
     return str(path)
 
 

@@ -432,8 +432,11 @@ class SplitRTEModule(RadiativeTransferStage):
         """The baked density comes with the state (no EA field needed); the medium resizes
         its grid to the checkpoint's itself
         (:class:`~nrt.modules.fields.voxel_medium.VoxelMedium`); the light fields of more
-        environments than one are built to receive theirs."""
+        environments than one are built to receive theirs. The uncollided caches come
+        with the state too: a resumed run refreshes them on their schedule, as the run left
+        alone does, not at once."""
         self._baked = True
+        self._uncollided_fresh = checkpoint.get("global_step", 0) > 0
         more = {key.split(".")[1] for key in checkpoint["state_dict"]
                 if key.startswith("more_lights.")}
         self.add_lights(1 + len(more))
