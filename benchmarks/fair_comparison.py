@@ -26,29 +26,28 @@ and method, time-to-accuracy) from those files alone.
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import SCENES, ea_checkpoint, metric_rows, output_dir, run_cli, train
+from benchmarks.common import SCENES, ea_checkpoint, output_dir
+from benchmarks.equal_time import (
+    EVAL_KEYS,
+    PROPERTIES,
+    read_record,
+    run_method,
+    summary_line,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT / "docs" / "data" / "fair_comparison"
 FIGURE = ROOT / "docs" / "figures" / "fair_comparison_cpu.png"
-PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 METHODS = {"rte": ["stage=rte"], "dpt": ["stage=dpt"],
            "rte_paper": ["stage=rte", "experiment=rte_paper"]}
 LABELS = {"rte": "stage 2 (nrt)", "dpt": "path tracing (baseline)",
           "rte_paper": "paper's formulation"}
 COLOURS = {"rte": "tab:blue", "dpt": "tab:red", "rte_paper": "tab:green"}
-EVAL_KEYS = ("psnr_novel", "ssim_novel", "lpips_novel", "psnr_noise_floor_novel")
-MANY_STEPS = 1_000_000  # the budget stops the run
-HELD_BACK_SKY = 2
-"""The sky no method trains on (the paper's formulation trains on sky 0 alone, the others on
-skies 0 and 1): every method's novel-illumination score is its re-render under this one."""
 
 
 def scene_overrides(scene: str, photo_seed: int) -> tuple[str, list[str]]:
@@ -57,31 +56,6 @@ def scene_overrides(scene: str, photo_seed: int) -> tuple[str, list[str]]:
         return scene, list(SCENES[scene])
     name = f"{scene}_photo{photo_seed}"
     return name, [*SCENES[scene], f"scene.photo_seed={photo_seed}", f"scene.name={name}"]
-
-
-def write_curve(run: Path, path: Path) -> int:
-    """The run's property MSEs x100 against training seconds as CSV; the number of points."""
-    rows = [r for r in metric_rows(run) if r.get("val/mse_sigma_t_x100") and
-            r.get("time/wall_s")]
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["wall_s", *PROPERTIES])
-        for r in rows:
-            w.writerow([f"{float(r['time/wall_s']):.2f}",
-                        *(f"{float(r[f'val/mse_{k}_x100']):.5g}" if r.get(f"val/mse_{k}_x100")
-                          else "" for k in PROPERTIES)])
-    return len(rows)
-
-
-def evaluate(run: Path, out: Path) -> dict:
-    """nrt-eval's metrics of a run: the Mitsuba re-render of the held-out views under
-    :data:`HELD_BACK_SKY` at the dataset's spp (every method alike), with LPIPS and the
-    noise floor."""
-    run_cli("eval", [f"run={run}", f"rerender.environments=[{HELD_BACK_SKY}]",
-                     "relight.enabled=false", "export.mitsuba=false", "render.progress=false"],
-            out)
-    latest = sorted(run.glob("eval/*/metrics.json"))[-1]
-    return json.loads(latest.read_text())["metrics"]
 
 
 def run_all(args) -> None:
@@ -100,26 +74,10 @@ def run_all(args) -> None:
                     print(f"{scene} photo{seed} {method}: done already", flush=True)
                     continue
                 ckpt = ckpt or ea_checkpoint(name, args.preset, overrides)
-                stage = METHODS[method][0].split("=")[1]
-                run, _ = train(stage, args.out, args.preset, [
-                    *METHODS[method][1:], *overrides, f"init.ea_ckpt={ckpt}",
-                    f"budget_s={args.budget_s}", f"budget.{stage}.steps={MANY_STEPS}",
-                    f"callbacks.property_metrics.every_s={args.every_s}"])
-                points = write_curve(run, folder / f"{method}.csv")
-                metrics = evaluate(run, args.out)
-                info = json.loads((run / "run.json").read_text())
-                steps = max(int(float(r["step"])) for r in metric_rows(run) if r.get("step"))
-                record = {"scene": scene, "photo_seed": seed, "method": method,
-                          "budget_s": args.budget_s, "preset": args.preset,
-                          "seconds": info["final_metrics"]["time/wall_s"], "steps": steps + 1,
-                          "curve_points": points, "learns_g": "mse_g_x100" in metrics,
-                          "metrics": {k: v for k, v in metrics.items()
-                                      if k.startswith(("mse_", *EVAL_KEYS))}}
-                result.write_text(json.dumps(record, indent=1) + "\n")
-                print(f"{scene} photo{seed} {method}: sigma_t {metrics['mse_sigma_t_x100']:.3f} "
-                      f"sigma_s {metrics['mse_sigma_s_x100']:.3f} PSNR "
-                      f"{metrics.get('psnr_novel', math.nan):.2f} ({points} curve points) {run}",
-                      flush=True)
+                record = run_method(folder / method, METHODS[method], overrides, ckpt,
+                                    args.budget_s, args.every_s, args.preset, args.out,
+                                    {"scene": scene, "photo_seed": seed, "method": method})
+                print(summary_line(f"{scene} photo{seed} {method}", record), flush=True)
 
 
 # ------------------------------------------------------------------------- redraw
@@ -127,11 +85,7 @@ def read_results(data: Path) -> dict[tuple[str, int, str], dict]:
     """(scene, photo seed, method) -> the run's record, with its curve as arrays."""
     out = {}
     for path in sorted(data.glob("*/photo*/*.json")):
-        record = json.loads(path.read_text())
-        with open(path.with_suffix(".csv"), newline="") as f:
-            rows = list(csv.DictReader(f))
-        record["curve"] = {k: np.array([float(r[k]) if r[k] else math.nan for r in rows])
-                           for k in ("wall_s", *PROPERTIES)}
+        record = read_record(path)
         out[(record["scene"], int(record["photo_seed"]), record["method"])] = record
     return out
 

@@ -25,8 +25,8 @@ from nrt.cameras import Intrinsics
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import SceneError
 from nrt.modules.fields.voxel_medium import VoxelMedium
-from nrt.modules.stages.dpt import DPTModule
 from nrt.physics.volume import cell_centres
+from nrt.stages.dpt import DPTModule
 
 ROOT = Path(__file__).resolve().parent.parent
 EFFECTS = {"phase": "hg", "chromatic": True, "max_scattering_order": -1, "emitters": []}
@@ -270,3 +270,19 @@ def test_the_rate_decays_and_drops_at_its_fractions():
                            (0.8, 0.1 ** 0.8 * 0.25), (1.0, 0.1 * 0.25)):
         module.progress = lambda p=progress: p
         assert rate(0) == pytest.approx(want), progress
+
+
+def test_g_learns_at_its_own_factor_of_the_rate():
+    """``lr_g_factor`` scales g's rate only; the grids keep ``lr`` and both follow one
+    schedule. Without a learned g there is one group."""
+    module = DPTModule(EFFECTS, {"source": "ea", "ea_ckpt": None}, [4], [], lr=0.02,
+                       lr_g_factor=0.1)
+    (opt,), _ = module.configure_optimizers()
+    rates = {id(p): group["lr"] for group in opt.param_groups for p in group["params"]}
+    grids = module.grids()
+    assert rates[id(grids.pop("g"))] == pytest.approx(0.002)
+    assert {rates[id(p)] for p in grids.values()} == {0.02}
+    assert len(rates) == len(list(module.parameters()))
+    fixed = DPTModule(EFFECTS, {"source": "ea", "ea_ckpt": None}, [4], [], phase_g=0.3)
+    (opt,), _ = fixed.configure_optimizers()
+    assert len(opt.param_groups) == 1
