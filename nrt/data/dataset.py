@@ -1,7 +1,7 @@
 """Load and validate a dataset folder (rendered by nrt or written by any other tool).
 
 Every user mistake raises :class:`~nrt.errors.DatasetError` naming the file or key and
-the fix. See README "Data format" for the layout; ``ground_truth.npz`` and ``scene.json``
+the fix. See docs/data_format.md for the layout; ``ground_truth.npz`` and ``scene.json``
 are optional (metrics that need ground truth are then skipped).
 """
 

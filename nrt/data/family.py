@@ -7,7 +7,7 @@ Member ``i`` is the family's scene config with ``seed = scene.seed + i``, named
 (environment 0, the one stages train on) and ``scene.family.heldout_sky`` (environment 1).
 Everything else (medium generator, effects, cameras, spp, sizes) is the scene's, so the
 members share one camera rig. Each member is an ordinary dataset in the cache
-(``<data_root>/<member name>-<spec hash>/``, README "Data format"): rendered once, reused
+(``<data_root>/<member name>-<spec hash>/``, docs/data_format.md): rendered once, reused
 by every family that holds the same spec, readable by every tool that reads a dataset.
 
 The family folder ``<data_root>/<name>-<family hash>/`` holds only the manifest

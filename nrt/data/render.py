@@ -194,7 +194,7 @@ def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "au
         folder = Path(str(scene_cfg["path"])).expanduser()
         if not folder.is_dir():
             raise DatasetError(f"Scene key 'scene.path' = '{folder}' is not a dataset folder. "
-                               "Point scene.path at an existing folder (README \"Data format\") or "
+                               "Point scene.path at an existing folder (docs/data_format.md) or "
                                "set scene.path=null to render the scene.")
         return folder
     return ensure_rendered(resolve_scene(scene_cfg), data_root, variant, progress)
