@@ -15,8 +15,8 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from nrt.errors import ConfigError
 from nrt.files import TEMP_MARK, atomic_write, writing
-from nrt.modules.stages.schedules import RunClock
-from nrt.modules.stages.stage import Stage
+from nrt.stages.schedules import RunClock
+from nrt.stages.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -29,7 +29,7 @@ class WallClock(L.Callback, RunClock):
     curves and budgets measure optimisation alone, whatever the validation cadence. The
     elapsed time is stored in checkpoints: a resumed run continues its clock and budget.
     Schedules over the run's course read it
-    (:func:`~nrt.modules.stages.schedules.training_progress`).
+    (:func:`~nrt.stages.schedules.training_progress`).
     """
 
     def __init__(self, budget_s: float | None = None):
@@ -159,9 +159,9 @@ class HeldOutImageMetrics(L.Callback):
 class PropertyMetrics(L.Callback):
     """Medium-property MSE x 10^2 against the truth (docs/conventions.md, "Property metrics").
 
-    For a stage that learns a medium (:meth:`nrt.modules.stages.stage.Stage.property_grids` is not
+    For a stage that learns a medium (:meth:`nrt.stages.stage.Stage.property_grids` is not
     None) and a dataset with ``ground_truth.npz``: ``val/mse_{sigma_a,sigma_s,sigma_t}_x100``
-    and, where the stage learns g (:attr:`~nrt.modules.stages.stage.Stage.learns_g`: not for an
+    and, where the stage learns g (:attr:`~nrt.stages.stage.Stage.learns_g`: not for an
     isotropic scene or a fixed g), ``val/mse_g_x100`` (weighted by the true sigma_s), at
     step 0 (the starting point of accuracy-versus-time curves), after each validation and
     when training ends; with ``slices``, the middle z-slices learned | true to TensorBoard.
@@ -171,7 +171,7 @@ class PropertyMetrics(L.Callback):
     counts in no method's time or budget.
 
     On a scene family, for a stage with a medium per member
-    (:meth:`~nrt.modules.stages.stage.Stage.member_property_grids`): each member's MSEs against its
+    (:meth:`~nrt.stages.stage.Stage.member_property_grids`): each member's MSEs against its
     own ground truth, ``val/mse_<property>_x100_member<k>``, and their mean
     ``val/mse_<property>_x100`` (slices of member 0).
     """

@@ -140,7 +140,7 @@ def single_scene_ea_checkpoint(path: Path) -> Path:
     import lightning
     import torch
 
-    from nrt.modules.stages.ea import EAModule
+    from nrt.stages.ea import EAModule
 
     cfg = compose_config("train", ["preset=tiny"])
     module = hydra.utils.instantiate(cfg.model, _convert_="all")

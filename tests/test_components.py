@@ -1,9 +1,9 @@
 """Stage 1's density field and stage 2's light field and medium are components chosen by
 config group (``model/density_field=<name>``, ``model/light_field=<name>``,
-``model/medium=<name>``; :mod:`nrt.modules.stages.components`): every such config builds
+``model/medium=<name>``; :mod:`nrt.stages.components`): every such config builds
 with the stage or formulation it belongs to and is refused with a ``ConfigError`` naming its
 group by the others; the default compositions build the very modules they built before the
-groups existed; checkpoints written before load."""
+groups existed; checkpoints record them as configs and load."""
 
 from __future__ import annotations
 
@@ -18,10 +18,9 @@ from hydra.errors import InstantiationException
 from omegaconf import OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
-from nrt.errors import ConfigError
-from nrt.modules.stages.components import MOVED_MODULES, current_target
-from nrt.modules.stages.rte import RTEModule
-from nrt.modules.stages.rte_split import SplitRTEModule
+from nrt.errors import ConfigError, NrtError
+from nrt.stages.paper_rte import PaperRTEStage
+from nrt.stages.rte import RTEStage
 
 FORMULATIONS = {"split": (), "paper": ("experiment=rte_paper",)}
 """Stage 2's formulations: the default (split) stage and the paper's."""
@@ -117,51 +116,25 @@ def test_default_compositions_build_the_modules_of_before(formulation, state):
         assert total == pytest.approx(PAPER_PARAMETER_SUM, rel=1e-9)
 
 
-def pre_layout(config: dict) -> dict:
-    """``config`` with every ``_target_`` as checkpoints wrote it before the layout of
-    2026-11-23 (``nrt.modules.<module>.<Class>``, no subpackage)."""
-    out = {k: pre_layout(v) if isinstance(v, dict) else v for k, v in config.items()}
-    if "_target_" in out:
-        module, _, name = out["_target_"].rpartition(".")
-        out["_target_"] = f"nrt.modules.{module.rsplit('.', 1)[1]}.{name}"
-    return out
+STAGE_2 = {RTEStage: "split", PaperRTEStage: "paper"}
 
 
-def test_pre_layout_targets_map_to_importable_classes():
-    """Every module path the layout moved maps to one that imports and holds what the old
-    one held; a current or unrelated target is left alone."""
-    import importlib
-
-    for old, new in MOVED_MODULES.items():
-        assert old.count(".") == 2 and importlib.import_module(new)
-    assert current_target("nrt.modules.rte_split.SplitRTEModule") == \
-        "nrt.modules.stages.rte_split.SplitRTEModule"
-    assert hydra.utils.get_class(current_target("nrt.modules.siren.Siren")).__name__ == "Siren"
-    for same in ("nrt.modules.stages.ea.EAModule", "nrt.data.datamodule.RayDataModule"):
-        assert current_target(same) == same
+def saved_checkpoint(path: Path, model, hparams: dict, **extra) -> Path:
+    """``model``'s state with ``hparams`` saved as Lightning writes a checkpoint."""
+    torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
+                "pytorch-lightning_version": lightning.__version__, **extra}, path)
+    return path
 
 
-LEGACY = {  # the light_field and medium hyperparameters of checkpoints written before
-    SplitRTEModule: ({"degree": 2, "resolution": 12},
-                     {"resolutions": [4, 8, 16], "upsample_at": [0.4, 0.6],
-                      "density_resolution": 16, "init_albedo": 0.8,
-                      "parametrization": "extinction"}),
-    RTEModule: ({"hidden": 64, "layers": 3, "omega_0": 10.0, "omega_hidden": 30.0},
-                {"modulation": "siren", "grid_resolution": 32, "init_albedo": 0.8,
-                 "siren": {"hidden": 32, "layers": 2, "omega_0": 30.0, "omega_hidden": 30.0}}),
-}
-
-
-@pytest.mark.parametrize("cls", list(LEGACY), ids=lambda c: c.__name__)
-def test_checkpoints_load_with_old_and_new_hyperparameters(tmp_path: Path, cls):
+@pytest.mark.parametrize("cls", list(STAGE_2), ids=lambda c: c.__name__)
+def test_checkpoints_record_components_as_configs_and_load(tmp_path: Path, cls):
     """A checkpoint records the components as configs (plain data, no pickled code) that
-    ``load_from_checkpoint`` rebuilds; one written before (the components' keywords alone)
-    and one written before the layout (old module paths in ``_target_``) load too, into the
-    same state. The split stage's medium resizes its grid to the
-    resolution the checkpoint reached."""
+    ``load_from_checkpoint`` rebuilds into the same state; the split stage's medium resizes
+    its grid to the resolution the checkpoint reached. One whose components lack a
+    ``_target_`` (not of this checkpoint format) is refused naming the key."""
     torch.manual_seed(0)
-    _, model = build("stage=rte", *FORMULATIONS["split" if cls is SplitRTEModule else "paper"])
-    if cls is SplitRTEModule:
+    _, model = build("stage=rte", *FORMULATIONS[STAGE_2[cls]])
+    if cls is RTEStage:
         model.medium.follow_schedule(0.5, None)  # 4 -> 8 cells, as at 40% of a run
         assert model.medium.resolution == 8
     with torch.no_grad():
@@ -169,29 +142,45 @@ def test_checkpoints_load_with_old_and_new_hyperparameters(tmp_path: Path, cls):
             p.normal_()
     new = dict(model.hparams)
     assert new["light_field"]["_target_"] and new["medium"]["_partial_"] is True
-    light, medium = LEGACY[cls]
-    moved = {**new, **{g: pre_layout(new[g]) for g in ("light_field", "medium")}}
-    assert moved["light_field"]["_target_"].count(".") == 3  # nrt.modules.<module>.<Class>
-    for name, hparams in (("new", new), ("old", {**new, "light_field": light, "medium": medium}),
-                          ("moved", moved)):
-        path = tmp_path / f"{name}.ckpt"
-        torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
-                    "pytorch-lightning_version": lightning.__version__}, path)
-        loaded = cls.load_from_checkpoint(path, map_location="cpu")
-        for group in ("light_field", "medium"):
-            recorded = dict(loaded.hparams)[group]
-            assert recorded["_target_"] == new[group]["_target_"]
-            assert name == "old" or recorded == new[group]
-        for key, value in model.state_dict().items():
-            torch.testing.assert_close(loaded.state_dict()[key], value, msg=key)
+    loaded = cls.load_from_checkpoint(saved_checkpoint(tmp_path / "new.ckpt", model, new),
+                                      map_location="cpu")
+    for group in ("light_field", "medium"):
+        assert dict(loaded.hparams)[group] == new[group]
+    for key, value in model.state_dict().items():
+        torch.testing.assert_close(loaded.state_dict()[key], value, msg=key)
+    keywords = {k: v for k, v in new["light_field"].items() if k != "_target_"}
+    old = saved_checkpoint(tmp_path / "old.ckpt", model, {**new, "light_field": keywords})
+    with pytest.raises(ConfigError, match="model.light_field has no `_target_`"):
+        cls.load_from_checkpoint(old, map_location="cpu")
 
 
-def test_a_run_folder_from_before_the_layout_names_todays_stage(tmp_path: Path):
-    """nrt-eval reads a run's model class from its saved config: a run written before the
-    layout (``nrt.modules.rte_split.SplitRTEModule``) opens as today's class."""
+@pytest.mark.parametrize("version", [0, 2, "x"])
+def test_a_checkpoint_of_another_format_is_refused(tmp_path: Path, version):
+    """A checkpoint records nrt's checkpoint format; one of another (older or unknown) is
+    refused with the version and the fix, both where nrt loads a stage and on a resume."""
+    from nrt.stages.checkpoints import CHECKPOINT_FORMAT, FORMAT_KEY, check_format, load_stage
+
+    _, model = build("stage=rte", *FORMULATIONS["split"])
+    stamped: dict = {}
+    model.on_save_checkpoint(stamped)
+    assert stamped == {FORMAT_KEY: CHECKPOINT_FORMAT}
+    path = saved_checkpoint(tmp_path / "other.ckpt", model, dict(model.hparams),
+                            **{FORMAT_KEY: version})
+    message = f"checkpoint format {version!r}, written by"
+    with pytest.raises(NrtError, match=message) as refused:
+        load_stage(RTEStage, path)
+    assert "Train the stage again" in str(refused.value)
+    with pytest.raises(NrtError, match=message):
+        model.on_load_checkpoint({FORMAT_KEY: version, "state_dict": {}})
+    check_format({}, "unstamped")  # format 1 before it was recorded
+
+
+def test_a_run_folder_of_an_unknown_stage_is_refused(tmp_path: Path):
+    """nrt-eval reads a run's stage class from its saved config: a class this nrt does not
+    have (a run of an earlier nrt) is refused naming the run and the fix."""
     import json
 
-    from nrt.evaluation.runs import open_run
+    from nrt.evaluation.runs import open_run, run_grids
 
     (tmp_path / ".hydra").mkdir()
     (tmp_path / "run.json").write_text(json.dumps(
@@ -199,8 +188,10 @@ def test_a_run_folder_from_before_the_layout_names_todays_stage(tmp_path: Path):
     OmegaConf.save({"scene": {"effects": {"phase": "hg"}},
                     "model": {"_target_": "nrt.modules.rte_split.SplitRTEModule"}},
                    tmp_path / ".hydra" / "config.yaml")
-    run = open_run(tmp_path)
-    assert hydra.utils.get_class(run.model_target) is SplitRTEModule
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"")
+    with pytest.raises(NrtError, match="which this nrt does not have"):
+        run_grids(open_run(tmp_path), 8)
 
 
 def test_the_ea_field_is_a_density_field_with_an_optional_code():
@@ -223,33 +214,14 @@ def test_an_unknown_coupling_key_is_refused_with_the_known_ones():
         build("stage=rte", "+model.coupling.adjiont=true")
 
 
-def save_checkpoint(path: Path, model, hparams: dict) -> Path:
-    """``model``'s state with ``hparams`` as Lightning writes a checkpoint."""
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
-                "pytorch-lightning_version": lightning.__version__}, path)
-    return path
-
-
-def before_density_field(hparams: dict) -> dict:
-    """A stage-1 checkpoint's hyperparameters as they were before the density field was a
-    component: ``field``, the EAField's keywords (d_z and the modulation's width among them
-    in generative mode), and no ``density_field`` or ``latent_dim``."""
-    old = {k: v for k, v in hparams.items() if k not in ("density_field", "latent_dim")}
-    keywords = {k: v for k, v in hparams["density_field"].items() if not k.startswith("_")}
-    if hparams.get("latent_dim"):
-        keywords["latent_dim"] = hparams["latent_dim"]
-    return {**old, "field": keywords}
-
-
 @pytest.mark.parametrize("mode", ["single", "generative"])
-def test_stage_1_checkpoints_from_before_the_density_field_group_load(tmp_path: Path, mode):
-    """A stage-1 checkpoint records its density field as a config; one written before
-    (``field``: the EAField's keywords alone) loads into the same field: the same density,
-    to the bit, at random points (under a member's code in generative mode), through
-    ``load_from_checkpoint`` and the loaders stage 2 uses."""
+def test_stage_1_checkpoints_record_the_density_field_and_load(tmp_path: Path, mode):
+    """A stage-1 checkpoint records its density field as a config and loads into the same
+    field: the same density, to the bit, at random points (under a member's code in
+    generative mode), through ``load_from_checkpoint`` and the loaders stage 2 uses."""
     from nrt.errors import NrtError
-    from nrt.modules.stages.ea import build_density_field, density_field_factory, load_ea_field
-    from nrt.modules.stages.generative_ea import load_generative_ea
+    from nrt.stages.ea import build_density_field, density_field_factory, load_ea_field
+    from nrt.stages.generative_ea import load_generative_ea
 
     torch.manual_seed(0)
     cfg, model = build("stage=ea", *(GENERATIVE if mode == "generative" else ()))
@@ -258,27 +230,24 @@ def test_stage_1_checkpoints_from_before_the_density_field_group_load(tmp_path: 
             p.normal_(0, 0.1)
     new = dict(model.hparams)
     assert new["density_field"]["_target_"] == cfg.model.density_field._target_
-    old = before_density_field(new)
-    assert "density_field" not in old and "_target_" not in old["field"]
     x = torch.rand(256, 3) * 2 - 1
     code = model.codes[1].expand(256, -1) if mode == "generative" else None
     expected = model.field.density(x, code)
-    for name, hparams in (("new", new), ("old", old)):
-        path = save_checkpoint(tmp_path / f"{name}.ckpt", model, hparams)
-        loaded = type(model).load_from_checkpoint(path, map_location="cpu")
-        assert dict(loaded.hparams)["density_field"] == new["density_field"]
-        assert torch.equal(loaded.field.density(x, code), expected)
-        if mode == "single":
-            assert torch.equal(load_ea_field(str(path)).density(x), expected)
-            continue
-        with pytest.raises(NrtError, match="generative EA run"):
-            load_ea_field(str(path))
-        config, field, codes, _ = load_generative_ea(str(path))
-        assert torch.equal(codes, model.codes) and torch.equal(field.density(x, code), expected)
-        # generative stage 2 records that config and rebuilds the field from it
-        rebuilt = build_density_field(density_field_factory(config), 4)
-        rebuilt.load_state_dict(field.state_dict())
-        assert torch.equal(rebuilt.density(x, code), expected)
+    path = saved_checkpoint(tmp_path / "ea.ckpt", model, new)
+    loaded = type(model).load_from_checkpoint(path, map_location="cpu")
+    assert dict(loaded.hparams)["density_field"] == new["density_field"]
+    assert torch.equal(loaded.field.density(x, code), expected)
+    if mode == "single":
+        assert torch.equal(load_ea_field(str(path)).density(x), expected)
+        return
+    with pytest.raises(NrtError, match="generative EA run"):
+        load_ea_field(str(path))
+    config, field, codes, _ = load_generative_ea(str(path))
+    assert torch.equal(codes, model.codes) and torch.equal(field.density(x, code), expected)
+    # generative stage 2 records that config and rebuilds the field from it
+    rebuilt = build_density_field(density_field_factory(config), 4)
+    rebuilt.load_state_dict(field.state_dict())
+    assert torch.equal(rebuilt.density(x, code), expected)
 
 
 def test_a_density_field_without_density_is_refused_naming_its_group():

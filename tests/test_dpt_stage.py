@@ -30,9 +30,9 @@ from nrt.data.dataset import load_dataset
 from nrt.data.grids import load_property_grids
 from nrt.evaluation.evaluate import image_metrics
 from nrt.evaluation.rerender import render_frames
-from nrt.modules.stages.dpt import DPTModule
-from nrt.modules.stages.ea import load_ea_field
 from nrt.physics.volume import cell_centres
+from nrt.stages.dpt import DPTModule
+from nrt.stages.ea import load_ea_field
 
 STEPS = 60  # budget.dpt.steps of preset tiny: 4^3 cells, 8^3 from step 24, 16^3 from step 36
 RUN_ARGS = ("trainer.log_every_n_steps=1",  # every step's loss, for the window means

@@ -25,8 +25,8 @@ from omegaconf import OmegaConf
 from nrt.data.datamodule import RayDataModule
 from nrt.data.render import ensure_dataset
 from nrt.modules.fields.ea_field import EAField
-from nrt.modules.stages.ea import EAModule
 from nrt.run_dirs import SWEEP_FILE, discard_failed_start, new_run_dir, sweep_dir
+from nrt.stages.ea import EAModule
 
 
 @pytest.mark.slow

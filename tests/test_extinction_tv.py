@@ -7,6 +7,7 @@ nothing and keeps a finite gradient."""
 import pytest
 import torch
 
+from nrt.losses.context import StepContext
 from nrt.losses.extinction_tv import EPS, ExtinctionTV, total_variation
 from nrt.losses.objective import WeightSchedule
 from nrt.physics.volume import cell_centres
@@ -63,9 +64,8 @@ def test_noise_costs_more_than_the_smooth_field_it_sits_on():
 
 
 def test_the_objective_averages_the_stages_media():
-    class Stage:
-        def fresh_voxels(self):
-            return [Voxels(field(8, lambda z, y, x: x)), Voxels(field(8, lambda z, y, x: 3 * x))]
+    def media():
+        return [Voxels(field(8, lambda z, y, x: x)), Voxels(field(8, lambda z, y, x: 3 * x))]
 
     class Voxels:
         def __init__(self, s):
@@ -74,4 +74,4 @@ def test_the_objective_averages_the_stages_media():
     unit = ExtinctionTV("extinction_tv", WeightSchedule(1.0))
     expect = (total_variation(field(8, lambda z, y, x: x), BOX)
               + total_variation(field(8, lambda z, y, x: 3 * x), BOX)) / 2
-    torch.testing.assert_close(unit.loss(Stage(), {}, []), expect)
+    torch.testing.assert_close(unit.loss({}, StepContext([], voxels=media)), expect)

@@ -37,8 +37,8 @@ from nrt.errors import ConfigError, DatasetError, NrtError
 from nrt.evaluation.runs import open_run
 from nrt.metrics import psnr
 from nrt.modules.fields.ea_field import EAField
-from nrt.modules.stages.ea import load_ea_field
-from nrt.modules.stages.generative_ea import GenerativeEAModule
+from nrt.stages.ea import load_ea_field
+from nrt.stages.generative_ea import GenerativeEAModule
 
 K = 4  # the tiny preset's budget.family.members
 FAMILY, SMALL = GENERATIVE_FAMILY, SMALL_FAMILY
@@ -150,7 +150,7 @@ def test_conditioned_field_with_a_fixed_code_is_a_valid_ea_field():
 
 def test_single_mode_composes_the_single_scene_stage():
     cfg = compose_config("train", ["preset=tiny"])
-    assert cfg.mode.name == "single" and cfg.model._target_ == "nrt.modules.stages.ea.EAModule"
+    assert cfg.mode.name == "single" and cfg.model._target_ == "nrt.stages.ea.EAModule"
     assert cfg.data._target_ == "nrt.data.datamodule.RayDataModule"
     assert "latent_dim" not in cfg.model.density_field and cfg.model.get("latent_dim") is None
     assert list(cfg.stage.environments) == [0, 1]  # the tiny preset's two training skies

@@ -40,10 +40,10 @@ from nrt.data.grids import load_property_grids
 from nrt.errors import ConfigError, NrtError
 from nrt.losses.objective import scene_mean
 from nrt.metrics import property_mse
-from nrt.modules.stages.generative_ea import load_generative_ea
-from nrt.modules.stages.generative_rte import GenerativeRTEModule
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
+from nrt.stages.generative_ea import load_generative_ea
+from nrt.stages.generative_rte import GenerativeRTEModule
 
 STAGE2 = ("stage=rte", *GENERATIVE_FAMILY, *SMALL_FAMILY)
 SHORT = ("budget.rte.steps=24", "budget.val_every=12", "budget.val_views=1",
@@ -138,7 +138,7 @@ def assert_valid(grids: dict[str, torch.Tensor], resolution: int) -> None:
 
 def test_stage_composes_the_generative_components():
     cfg = compose_config("train", list(STAGE2))
-    assert cfg.model._target_ == "nrt.modules.stages.generative_rte.GenerativeRTEModule"
+    assert cfg.model._target_ == "nrt.stages.generative_rte.GenerativeRTEModule"
     assert cfg.model.light_field._target_.endswith("LatentSHGridLightField")
     assert cfg.model.medium._target_.endswith("LatentVoxelMedium")
     assert cfg.model.medium.parametrization == "extinction"

@@ -1,4 +1,4 @@
-"""Dependencies inside nrt point one way (issue 13; README "Layout").
+"""Dependencies inside nrt point one way (README "Layout").
 
 Every module of the package is parsed with :mod:`ast` (nothing is imported), and each of its
 ``import nrt...`` statements, at module level, inside functions and under
@@ -25,7 +25,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("nrt.modules.fields",),
     ("nrt.modules.renderers",),
     ("nrt.losses",),
-    ("nrt.modules.stages",),
+    ("nrt.stages",),
     ("nrt.evaluation",),
     ("nrt.callbacks",),
     ("nrt.cli",),
@@ -107,4 +107,4 @@ def test_the_check_sees_a_backward_import(tmp_path: Path):
     source.write_text("def f():\n    from nrt.evaluation.rerender import x\n"
                       "    import nrt.callbacks\n")
     assert nrt_imports(source) == [(2, "nrt.evaluation.rerender"), (3, "nrt.callbacks")]
-    assert layer_of("nrt.evaluation.rerender") > layer_of("nrt.modules.stages.dpt")
+    assert layer_of("nrt.evaluation.rerender") > layer_of("nrt.stages.dpt")

@@ -34,8 +34,6 @@ from nrt.losses.vre import VREObjective
 PAPER = "experiment=rte_paper"
 SPLIT_UNITS = {"photo": PhotoObjective, "transport": TransportObjective,
                "extinction_prior": ExtinctionPrior}
-LEGACY_UNITS = ("photo", "transport", "rte", "bc", "obs", "vre")
-"""The units of checkpoints written before ``losses.objectives`` chose them."""
 PAPER_UNITS = {"rte": RTEObjective, "bc": BoundaryObjective, "obs": ObservationObjective,
                "vre": VREObjective}
 
@@ -67,9 +65,12 @@ def test_every_stage_and_mode_names_its_units_in_its_config(stage):
     overrides, units = STAGES[stage]
     cfg = compose_config("train", ["preset=tiny", *overrides])
     assert list(cfg.losses.objectives) == list(cfg.losses.weights) == list(units)
-    assert OmegaConf.to_container(cfg.model.objectives, resolve=True) == {
-        name: {"_target_": f"{unit.__module__}.{unit.__name__}", "_partial_": True}
-        for name, unit in units.items()}
+    given = OmegaConf.to_container(cfg.model.objectives, resolve=True)
+    assert {name: (entry["_target_"], entry["_partial_"]) for name, entry in given.items()} == {
+        name: (f"{unit.__module__}.{unit.__name__}", True) for name, unit in units.items()}
+    # an objective's keywords are its sample counts and settings, whole numbers from the preset
+    assert all(isinstance(v, int | float | str | bool) for entry in given.values()
+               for v in entry.values())
     assert check_objectives(cfg) == units
     check_mode(cfg)
 
@@ -96,9 +97,9 @@ def test_the_stages_build_their_units_and_record_their_configs(stage, built):
     assert list(model.objectives) == built
     assert all(type(unit) is units[name] and unit.name == name
                for name, unit in model.objectives.items())
-    assert dict(model.hparams)["objectives"] == {
-        name: {"_target_": f"{unit.__module__}.{unit.__name__}", "_partial_": True}
-        for name, unit in units.items()}
+    recorded = dict(model.hparams)["objectives"]
+    assert {name: (entry["_target_"], entry["_partial_"]) for name, entry in recorded.items()} \
+        == {name: (f"{unit.__module__}.{unit.__name__}", True) for name, unit in units.items()}
 
 
 def test_forward_mode_leaves_out_a_weighted_photo_objective():
@@ -117,7 +118,8 @@ def test_a_new_unit_is_a_class_and_a_config_entry(tmp_path: Path):
     ``load_from_checkpoint``; here a second transport objective under another name."""
     model = build("stage=rte", "+losses.objectives.again._target_="
                   "nrt.losses.transport.TransportObjective",
-                  "+losses.objectives.again._partial_=true", "+losses.weights.again=0.5")
+                  "+losses.objectives.again._partial_=true", "+losses.objectives.again.points=64",
+                  "+losses.objectives.again.samples=4", "+losses.weights.again=0.5")
     assert list(model.objectives) == ["photo", "transport", "extinction_prior", "again"]
     assert isinstance(model.objectives["again"], TransportObjective)
     assert model.objectives["again"].weight(0, 1.0) == 0.5
@@ -135,21 +137,18 @@ def reload(model, hparams: dict, path: Path):
 
 
 @pytest.mark.parametrize("stage", ["rte", "rte_paper"])
-def test_a_checkpoint_from_before_the_objectives_were_configs_loads(tmp_path: Path, stage):
-    """A checkpoint whose hyperparameters have no ``objectives`` (written before) loads
-    with the formulation's units of that time, and records their configs from then on; a
-    checkpoint of today loads the units it records."""
+def test_a_checkpoint_loads_the_objectives_it_records(tmp_path: Path, stage):
+    """A checkpoint records its objectives' configs and loads those units; one without
+    ``objectives`` (not of this checkpoint format) is refused naming the key."""
     overrides, units = STAGES[stage]
     model = build(*overrides)
     new = dict(model.hparams)
-    then = {n: u for n, u in units.items() if n in LEGACY_UNITS}  # the units of that time
+    loaded = reload(model, new, tmp_path / "new.ckpt")
+    assert {n: type(u) for n, u in loaded.objectives.items()} == units
+    assert dict(loaded.hparams)["objectives"] == new["objectives"]
     old = {k: v for k, v in new.items() if k != "objectives"}
-    old["weights"] = {n: w for n, w in new["weights"].items() if n in then}
-    for name, hparams, expected in (("new", new, units), ("old", old, then)):
-        loaded = reload(model, hparams, tmp_path / f"{name}.ckpt")
-        assert {n: type(u) for n, u in loaded.objectives.items()} == expected
-        assert dict(loaded.hparams)["objectives"] == {
-            n: c for n, c in new["objectives"].items() if n in expected}
+    with pytest.raises(ConfigError, match="losses.objectives is missing"):
+        reload(model, old, tmp_path / "old.ckpt")
 
 
 def test_a_constant_weight_holds_at_every_step_and_progress():
@@ -182,7 +181,8 @@ def test_a_weight_that_is_neither_number_nor_ramp_is_refused(value):
         WeightSchedule(value, key="losses.weights.photo")
 
 
-FACTORIES = {name: functools.partial(SPLIT_UNITS[name]) for name in ("photo", "transport")}
+FACTORIES = {"photo": functools.partial(PhotoObjective, rays=8, vre_samples=4),
+             "transport": functools.partial(TransportObjective, points=8, samples=4)}
 
 
 def test_build_objectives_keeps_the_weights_order_and_the_warm_ups():
@@ -255,4 +255,4 @@ def test_the_extinction_prior_refuses_a_stage_without_voxels():
     model = build("stage=rte", PAPER)
     prior = ExtinctionPrior("extinction_prior", WeightSchedule(1.0))
     with pytest.raises(ConfigError, match=r"losses\.weights\.extinction_prior"):
-        prior.loss(model, {}, [])
+        prior.loss({}, model.step_context([]))

@@ -24,7 +24,7 @@ from omegaconf import OmegaConf
 
 from nrt.data.exr import write_exr
 from nrt.data.render import ensure_dataset
-from nrt.modules.stages import rte as rte_module
+from nrt.stages import radiative_transfer
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 PAPER = "experiment=rte_paper"
@@ -299,9 +299,9 @@ def spy_objectives(monkeypatch, model) -> list[tuple[int, str]]:
     """(step, name) of every loss the model's objectives compute from now on."""
     called: list[tuple[int, str]] = []
     for name, unit in model.objectives.items():
-        def spy(stage, batch, scenes, name=name, original=unit.loss):
-            called.append((stage.global_step, name))
-            return original(stage, batch, scenes)
+        def spy(batch, context, name=name, original=unit.loss):
+            called.append((model.global_step, name))
+            return original(batch, context)
         monkeypatch.setattr(unit, "loss", spy)
     return called
 
@@ -318,7 +318,7 @@ def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
         tmp_path, monkeypatch, sun_threshold, emitters, expect_direct):
     model, dm = build(tmp_path, f"model.sun.threshold={sun_threshold}",
                       f"scene.effects.emitters={emitters}")
-    calls = count_calls(monkeypatch, rte_module, "direct_inscatter")
+    calls = count_calls(monkeypatch, radiative_transfer, "direct_inscatter")
     fit(model, dm, 2)
     assert bool(calls) == expect_direct
 

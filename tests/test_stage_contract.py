@@ -1,4 +1,4 @@
-"""Every stage keeps the contract of :mod:`nrt.modules.stages.stage` that callbacks, evaluation
+"""Every stage keeps the contract of :mod:`nrt.stages.stage` that callbacks, evaluation
 and the CLI rely on (they no longer probe stages for what they offer); every stage x scene x
 preset combination composes, passes the config checks and builds (a scene that differs from
 an earlier one only in its medium, at the tiny preset alone)."""
@@ -14,7 +14,7 @@ from omegaconf import OmegaConf
 
 from nrt.cli.checks import check_arguments, check_budget, check_mode
 from nrt.cli.common import CONFIG_DIR
-from nrt.modules.stages.stage import Stage
+from nrt.stages.stage import Stage
 
 STAGES = {  # a medium (property grids)? g scored (the default scene's phase is hg)?
     ("ea",): (False, True),

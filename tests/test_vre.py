@@ -268,7 +268,7 @@ def vre_of_known_lights(medium: Medium, lights: DirectLights, n_samples: int = 4
                         shadow_steps: int = 4) -> Callable:
     """``fn(o, d)`` for :func:`footprint_average`: the VRE image with the light field at zero,
     a black sky and only ``lights`` as (first-scattered) sources, as stage 2 wires them
-    (``RTEModule.direct_source``): fixed stratum centres, so the image is a deterministic
+    (``PaperRTEStage.direct_source``): fixed stratum centres, so the image is a deterministic
     quadrature and all the noise of a comparison is Mitsuba's."""
     light = zero_light(medium.bbox.double())
 

@@ -131,6 +131,14 @@ def _check_option(cfg: DictConfig, key: str) -> None:
                           "leave the key to its default (`--cfg job` prints the config).")
 
 
+def voxel_stage(cls) -> bool:
+    """Whether ``cls`` (a model's ``_target_``) is a stage that learns voxel media
+    (:attr:`nrt.stages.stage.Stage.voxel_media`)."""
+    from nrt.stages.stage import Stage
+
+    return isinstance(cls, type) and issubclass(cls, Stage) and cls.voxel_media
+
+
 def check_objectives(cfg: DictConfig) -> dict[str, type]:
     """The unit (a subclass of :class:`~nrt.losses.objective.Objective`) each entry of
     ``losses.objectives`` names, by name (none for a stage without objectives); an entry
@@ -165,7 +173,7 @@ def check_objectives(cfg: DictConfig) -> dict[str, type]:
                               "itself, with its name and weight schedule.")
     model = OmegaConf.select(cfg, "model._target_")
     priors = [name for name, unit in classes.items() if unit.reads_voxels]
-    if priors and model and not hasattr(get_object(model), "fresh_voxels"):
+    if priors and model and not voxel_stage(get_object(model)):
         raise ConfigError(f"losses.objectives.{priors[0]} is a prior on a voxel medium, which "
                           f"this stage ({model}) does not have: the paper's formulation "
                           "(experiment=rte_paper) learns a SIREN medium. Drop it "

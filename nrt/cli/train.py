@@ -24,12 +24,7 @@ from nrt.cli.checks import check_arguments, check_budget, check_mode, check_obje
 from nrt.cli.common import run_app
 from nrt.errors import NrtError
 from nrt.files import check_output_folder, write_text_atomic
-from nrt.run_dirs import (
-    LAST_CKPT,
-    latest_run_with_checkpoint,
-    read_run_info,
-    write_run_info,
-)
+from nrt.run_dirs import LAST_CKPT, read_run_info, write_run_info
 
 log = logging.getLogger(__name__)
 
@@ -60,40 +55,20 @@ def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
 
 
 def resolve_ea_checkpoint(cfg: DictConfig, recorded: str | None = None) -> str | None:
-    """The EA checkpoint whose density stage 2 (and dpt) modulates, as an absolute path set
-    into ``cfg.init.ea_ckpt``; None for stages that do not start from one.
+    """The EA checkpoint a stage starts from (:func:`nrt.stages.start.resolve_ea_checkpoint`:
+    ``init.ea_ckpt``, else ``recorded`` by a resumed run, else the scene's newest EA run), set
+    into ``cfg.init.ea_ckpt`` as an absolute path; None for a stage that reads none."""
+    from nrt.stages.start import resolve_ea_checkpoint as resolve
 
-    ``init.ea_ckpt`` when given; else ``recorded`` (the one a resumed run started from);
-    else the newest EA run of the same scene that saved a checkpoint. ``init=oracle`` needs
-    one only to blend it with the truth (``init.truth_share`` < 1)."""
-    source = OmegaConf.select(cfg, "model.density.source")
-    if source == "oracle":
-        from nrt.modules.stages.rte_split import truth_share
-
-        if truth_share(cfg.model.density) == 1.0:
-            return None
-    elif source != "ea":
+    density = OmegaConf.select(cfg, "model.density")
+    if density is None:
         return None
-    if cfg.init.ea_ckpt:
-        from nrt.modules.stages.ea import check_checkpoint_file
-
-        path = Path(str(cfg.init.ea_ckpt)).expanduser()
-        check_checkpoint_file(str(path), f"nrt-train stage=ea scene={cfg.scene.name}")
-    elif recorded and Path(recorded).is_file():
-        path = Path(recorded)
-    else:
-        base = Path(cfg.paths.output_dir) / cfg.scene.name / "ea"
-        run = latest_run_with_checkpoint(base)
-        if run is None:
-            raise NrtError(f"stage={cfg.stage.name} starts from the EA density of scene "
-                           f"'{cfg.scene.name}', but no EA run under '{base}' saved "
-                           f"{LAST_CKPT}. Run `nrt-train stage=ea scene={cfg.scene.name}` "
-                           "first, pass init.ea_ckpt=<path/to/last.ckpt>, or use init=none for "
-                           "the single-stage ablation.")
-        path = run / LAST_CKPT
-    cfg.init.ea_ckpt = str(path.resolve())
-    log.info("Stage %s starts from EA checkpoint %s", cfg.stage.name, cfg.init.ea_ckpt)
-    return cfg.init.ea_ckpt
+    path = resolve(OmegaConf.to_container(density, resolve=True), cfg.scene.name,
+                   cfg.stage.name, cfg.paths.output_dir, recorded)
+    if path is not None:
+        cfg.init.ea_ckpt = path
+        log.info("Stage %s starts from EA checkpoint %s", cfg.stage.name, path)
+    return path
 
 
 def save_config(cfg: DictConfig, run_dir: Path) -> None:

@@ -19,8 +19,8 @@ import torch
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
-from nrt.modules.stages.ea import DENSITY_GRID_FILE
 from nrt.physics.volume import resample_cells
+from nrt.stages.ea import DENSITY_GRID_FILE
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 CHANNELS = "RGB"

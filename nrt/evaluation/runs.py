@@ -18,11 +18,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, load_property_grids
 from nrt.errors import NrtError
-from nrt.modules.stages.components import current_target
 from nrt.run_dirs import LAST_CKPT, RUN_FILE
+from nrt.stages.checkpoints import load_stage
 
 if TYPE_CHECKING:
-    from nrt.modules.stages.stage import Stage
+    from nrt.stages.stage import Stage
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,21 @@ def open_run(path: str | Path) -> TrainedRun:
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return TrainedRun(path, info["stage"], info["scene"], Path(info["dataset_dir"]),
                       list(info["environments"]), effects,
-                      current_target(str(cfg.model._target_)))
+                      str(cfg.model._target_))
+
+
+def stage_class(run_dir: Path, target: str) -> type:
+    """The stage class a run's config names (``model._target_``); a name this nrt does not
+    have (a run of an earlier nrt) is refused naming the run."""
+    from hydra.utils import get_class
+
+    try:
+        return get_class(target)
+    except ImportError as error:
+        raise NrtError(f"run='{run_dir}' was trained with the stage {target}, which this nrt "
+                       "does not have (a run of an earlier nrt, whose checkpoints this nrt does "
+                       "not read). Evaluate its exported grids instead (grids=<run>/"
+                       f"{MEDIUM_GRIDS_FILE} scene=<name>), or train it again.") from error
 
 
 def checkpoint_path(run: TrainedRun | Path, checkpoint: str) -> Path:
@@ -94,10 +108,8 @@ def run_grids(run: TrainedRun, resolution: int | None, checkpoint: str = "last"
             return grids, str(exported)
     if resolution is None:
         resolution = 64
-    from hydra.utils import get_class
-
     ckpt = checkpoint_path(run, checkpoint)
-    module: Stage = get_class(run.model_target).load_from_checkpoint(ckpt, map_location="cpu")
+    module: Stage = load_stage(stage_class(run.path, run.model_target), ckpt)
     grids = module.property_grids(int(resolution))
     if grids is None:
         raise NrtError(f"run='{run.path}' (stage {run.stage}) has no learned medium to "
@@ -144,16 +156,14 @@ def open_generative_run(path: str | Path) -> GenerativeRun:
                        "then nrt-sample run=<that run>.")
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return GenerativeRun(path, Path(info["family_dir"]), effects,
-                         current_target(str(cfg.model._target_)))
+                         str(cfg.model._target_))
 
 
 def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> Stage:
     """The run's module from ``checkpoint`` on the CPU in eval mode, checked to decode
     codes (``codes``, ``member_names``, ``property_grids_for``)."""
-    from hydra.utils import get_class
-
     ckpt = checkpoint_path(run.path, checkpoint)
-    module = get_class(run.model_target).load_from_checkpoint(ckpt, map_location="cpu")
+    module = load_stage(stage_class(run.path, run.model_target), ckpt)
     if not all(hasattr(module, a) for a in ("codes", "member_names", "property_grids_for")):
         raise NrtError(f"run='{run.path}': its module {run.model_target} has no latent codes "
                        f"and decoder; nrt-sample needs a generative stage-2 run "

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective, WeightSchedule
 from nrt.losses.samplers import boundary_samples
 from nrt.modules.fields.light_field import LightField
 
@@ -18,14 +19,17 @@ def boundary_loss(light: LightField, points: torch.Tensor, dirs: torch.Tensor,
 
 
 class BoundaryObjective(Objective):
-    """``bc``: the inflow condition at ``samples.boundary_points`` points on the box faces,
-    ``env_fraction`` of their directions drawn like the sun-less environment
-    (``stage.sky.sampler``), against the sun-less sky ``stage.sky.rest``."""
+    """``bc``: the inflow condition at ``points`` points on the box faces, ``env_fraction``
+    of their directions drawn like the sun-less environment (the illumination's
+    ``sampler``), against the sun-less sky (its ``rest``)."""
 
     name = "bc"
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        [(_, light)], s = scenes, stage.hparams.samples
-        pts, w = boundary_samples(int(s["boundary_points"]), light.bbox, stage.sky.sampler,
-                                  float(s["env_fraction"]))
-        return boundary_loss(light, pts, w, stage.sky.rest.lookup(-w).to(pts.dtype))
+    def __init__(self, name: str, schedule: WeightSchedule, points: int, env_fraction: float):
+        super().__init__(name, schedule)
+        self.points, self.env_fraction = int(points), float(env_fraction)
+
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        [(_, light)], sky = context.scenes, context.illumination
+        pts, w = boundary_samples(self.points, light.bbox, sky.sampler, self.env_fraction)
+        return boundary_loss(light, pts, w, sky.rest.lookup(-w).to(pts.dtype))

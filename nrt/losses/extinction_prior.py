@@ -15,18 +15,19 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes, fresh_voxels
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective
 
 
 class ExtinctionPrior(Objective):
     """``extinction_prior``: the mean over voxels and channels of the extinction of each
-    learned medium (the stage's ``fresh_voxels()``: one for a scene under several skies,
+    learned medium (the step's ``context.voxel_media``: one for a scene under several skies,
     one per member for a family), averaged over them. It trains the medium only."""
 
     families = True
     medium_only = True
     reads_voxels = True
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
         return torch.stack([voxels.extinction.mean()
-                            for voxels in fresh_voxels(stage, self.name)]).mean()
+                            for voxels in context.voxel_media(self.name)]).mean()

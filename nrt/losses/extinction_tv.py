@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes, fresh_voxels
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective
 
 EPS = 1e-2
 """Smoothing of ``|grad sigma_t|`` (inverse squared length): well below the gradient of any
@@ -43,13 +44,13 @@ def total_variation(extinction: torch.Tensor, bbox: torch.Tensor, eps: float = E
 
 class ExtinctionTV(Objective):
     """``extinction_tv``: :func:`total_variation` of each learned medium's extinction (the
-    stage's ``fresh_voxels()``), averaged over them. It trains the medium only; off unless
+    step's ``context.voxel_media``), averaged over them. It trains the medium only; off unless
     weighted (``ablation=extinction_tv``)."""
 
     families = True
     medium_only = True
     reads_voxels = True
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
         return torch.stack([total_variation(voxels.extinction, voxels.bbox)
-                            for voxels in fresh_voxels(stage, self.name)]).mean()
+                            for voxels in context.voxel_media(self.name)]).mean()

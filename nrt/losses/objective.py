@@ -9,12 +9,10 @@ that step. A weight is a number or ``[start, end, ramp_steps]`` (linear over the
 ``ramp_steps`` steps, then constant), and may be off until a share of the run has passed
 (``starts_at``: the split stage's objectives of the medium wait for ``light_warmup``).
 
-An objective's :meth:`Objective.loss` reads the stage it serves (its sample counts, the
-known lights, the in-scattering it supplies) and is taken over ``scenes``: the (medium,
-light) pairs of the step: one for a single scene under one sky; one per family member in
-the generative mode; one per training environment when the split stage trains on several
-(one medium, a light field each). With more than one, the batch's ``scene`` (B,) says
-which each ray belongs to.
+An objective takes its sample counts as constructor keywords (the entry's keywords in
+``losses.objectives``), and its :meth:`Objective.loss` reads the ray batch and the step's
+:class:`~nrt.losses.context.StepContext` (the (medium, light) pairs it is taken over, the
+illumination, the in-scattering the stage supplies), never the stage.
 """
 
 from __future__ import annotations
@@ -27,9 +25,7 @@ from typing import Any
 import torch
 
 from nrt.errors import ConfigError
-
-Scenes = Sequence[tuple[Any, Any]]
-"""The (medium, light) pairs an objective is taken over."""
+from nrt.losses.context import StepContext
 
 
 class WeightSchedule:
@@ -76,8 +72,8 @@ class Objective:
     field's warm-up (``light_warmup``), and forward mode (the medium is the ground truth)
     leaves it out."""
     reads_voxels: bool = False
-    """Whether it reads the stage's voxel medium (:func:`fresh_voxels`): a prior that only
-    the split stage 2 can have."""
+    """Whether it reads the step's voxel media (:meth:`StepContext.voxel_media`): a prior
+    that only the split stage 2 can have."""
 
     def __init__(self, name: str, schedule: WeightSchedule):
         self.name, self.schedule = name, schedule
@@ -86,8 +82,9 @@ class Objective:
         """The weight at ``step`` and run progress ``progress`` in [0, 1]."""
         return self.schedule(step, progress)
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        """The unweighted loss on fresh samples and the ray ``batch``, over ``scenes``."""
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        """The unweighted loss on fresh samples and the ray ``batch``, over the step's
+        ``context.scenes``."""
         raise NotImplementedError
 
     def __repr__(self) -> str:
@@ -144,14 +141,3 @@ def scene_mean(scenes: torch.Tensor,
         mask = scenes == k
         total = total + mask.float().mean() * loss_of(k, mask)
     return total
-
-
-def fresh_voxels(stage, name: str) -> list:
-    """The learned media of a voxel stage composed anew (its ``fresh_voxels()``), for the
-    priors on them; a stage without voxels (the paper's formulation) is refused naming
-    ``losses.weights.<name>``."""
-    if not hasattr(stage, "fresh_voxels"):
-        raise ConfigError(f"losses.weights.{name}: this prior reads a voxel medium, which the "
-                          "split stage 2 has (stage=rte without experiment=rte_paper); remove "
-                          "it from this stage's objectives.")
-    return stage.fresh_voxels()

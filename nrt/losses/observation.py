@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective
 from nrt.modules.fields.light_field import LightField
 from nrt.modules.renderers.exit import exit_points
 
@@ -21,14 +22,14 @@ def observation_loss(light: LightField, origins: torch.Tensor, dirs: torch.Tenso
 
 
 class ObservationObjective(Objective):
-    """``obs``: the batch's photographed rays, but those that look into the sun
-    (``stage.sunless``): those see it through the medium, which the light field at the exit
-    does not, and are left to the VRE."""
+    """``obs``: the batch's photographed rays, but those that look into the sun (the
+    illumination's ``sunless``): those see it through the medium, which the light field at
+    the exit does not, and are left to the VRE."""
 
     name = "obs"
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        [(_, light)] = scenes
-        keep = stage.sunless(batch["dirs"])
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        [(_, light)] = context.scenes
+        keep = context.illumination.sunless(batch["dirs"])
         return observation_loss(light, batch["origins"][keep], batch["dirs"][keep],
                                 batch["rgb"][keep])

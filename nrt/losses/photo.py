@@ -24,7 +24,8 @@ from __future__ import annotations
 import torch
 
 from nrt.errors import ConfigError
-from nrt.losses.objective import Objective, Scenes, scene_mean
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective, WeightSchedule, scene_mean
 from nrt.modules.renderers.volume import render_view_rays
 from nrt.physics.tonemap import log_tonemap
 
@@ -67,44 +68,46 @@ def photo_loss(rendered: torch.Tensor, photos: torch.Tensor, scale: torch.Tensor
 
 
 class PhotoObjective(Objective):
-    """``photo``: the first ``samples.photo_rays`` rays of the batch rendered with
-    ``vre_samples`` jittered strata through the medium, with the stage's in-scattering
-    (``stage.inscatter``) of the light as the stage lets the photos read it
-    (``stage.photo_light``: through the adjoint's leaf when that is on), against their
-    pixels (:func:`photo_loss`, ``photo_tonemap``); the batch's twin rays, when it has them
-    (``photo_twins``), rendered too and paired with their first rays. Over several scenes (a
-    family's members, or the training environments), each ray through its ``scene``'s, the
-    mean over all rays. It trains the medium only."""
+    """``photo``: the first ``rays`` rays of the batch rendered with ``vre_samples``
+    jittered strata through the medium, with the stage's in-scattering of all light
+    (``context.photo_source``), against their pixels (:func:`photo_loss` after
+    ``tonemap``); the batch's twin rays, when it has them (``photo_twins``), rendered too
+    and paired with their first rays. Over several scenes (a family's members, or the
+    training environments), each ray through its ``scene``'s, the mean over all rays. It
+    trains the medium only."""
 
     families = True
     medium_only = True
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        n = int(stage.hparams.samples["photo_rays"])
+    def __init__(self, name: str, schedule: WeightSchedule, rays: int, vre_samples: int,
+                 tonemap: str = "log"):
+        super().__init__(name, schedule)
+        check_tonemap(tonemap)
+        self.rays, self.vre_samples, self.tonemap = int(rays), int(vre_samples), tonemap
+
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        n, scenes = self.rays, context.scenes
         rays = {key: batch[key][:n] for key in RAY_KEYS}
         twins = {key: batch[key][:n] for key in TWIN_KEYS if key in batch}
         if len(scenes) == 1:
-            return self.scene_loss(stage, *scenes[0], rays, twins)
+            return self.scene_loss(context, *scenes[0], rays, twins)
         t = len(twins["twin_dirs"]) if twins else 0
         # a mask keeps the rays' order, so the twinned rays stay the first of each scene's
         return scene_mean(batch["scene"][:n].cpu(), lambda k, mask: self.scene_loss(
-            stage, *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()},
+            context, *scenes[k], {key: v[mask.to(v.device)] for key, v in rays.items()},
             {key: v[mask[:t].to(v.device)] for key, v in twins.items()}))
 
-    @staticmethod
-    def scene_loss(stage, medium, light, rays: dict, twins: dict | None = None
-                   ) -> torch.Tensor:
+    def scene_loss(self, context: StepContext, medium, light, rays: dict,
+                   twins: dict | None = None) -> torch.Tensor:
         """The loss of the camera ``rays`` (``origins``, ``dirs``, ``background``, ``rgb``)
         through ``medium`` lit by ``light``; ``twins`` (``twin_origins``, ``twin_dirs``,
         ``twin_background``): second rays through the pixels of the first of ``rays``."""
-        read, coefficients_grad = stage.photo_light(light)
-        source = stage.inscatter(medium, read, coefficients_grad)
-        samples = int(stage.hparams.samples["vre_samples"])
+        source = context.photo_source(medium, light)
+        samples = self.vre_samples
         pred = render_view_rays(medium, rays["origins"], rays["dirs"], rays["background"],
                                 samples, source)
         twin_pred = None
         if twins and len(twins["twin_dirs"]):  # a scene's share may hold no twinned ray
             twin_pred = render_view_rays(medium, twins["twin_origins"], twins["twin_dirs"],
                                          twins["twin_background"], samples, source)
-        return photo_loss(pred, rays["rgb"], light.radiance_scale, stage.hparams.photo_tonemap,
-                          twin_pred)
+        return photo_loss(pred, rays["rgb"], light.radiance_scale, self.tonemap, twin_pred)

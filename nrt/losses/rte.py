@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective, WeightSchedule
 from nrt.losses.samplers import collocation_points
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.light_field import LightField
@@ -55,16 +56,23 @@ def rte_loss(light: LightField, medium: Medium, points: torch.Tensor, n_dirs: in
 
 
 class RTEObjective(Objective):
-    """``rte``: the residual at ``samples.collocation_points`` points, ``density_fraction``
-    of them drawn like the extinction (``stage.density_sampler()``), with
-    ``inscatter_directions`` per estimate and the known lights' first scattering
-    (``stage.direct_source()``)."""
+    """``rte``: the residual at ``points`` collocation points, ``density_fraction`` of them
+    drawn like the extinction (``context.density_sampler()``), with ``directions``
+    in-scattering directions per estimate and the known lights' first scattering
+    (``context.direct_source``); ``detach_inscatter``: no gradient into the light field
+    through the in-scattered radiance."""
 
     name = "rte"
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        [(medium, light)], s = scenes, stage.hparams.samples
-        pts = collocation_points(int(s["collocation_points"]), light.bbox,
-                                 stage.density_sampler(), float(s["density_fraction"]))
-        return rte_loss(light, medium, pts, int(s["inscatter_directions"]),
-                        stage.hparams.detach_inscatter, stage.direct_source())
+    def __init__(self, name: str, schedule: WeightSchedule, points: int,
+                 density_fraction: float, directions: int, detach_inscatter: bool = False):
+        super().__init__(name, schedule)
+        self.points, self.density_fraction = int(points), float(density_fraction)
+        self.directions, self.detach_inscatter = int(directions), bool(detach_inscatter)
+
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        [(medium, light)] = context.scenes
+        pts = collocation_points(self.points, light.bbox, context.density_sampler(),
+                                 self.density_fraction)
+        return rte_loss(light, medium, pts, self.directions, self.detach_inscatter,
+                        context.direct_source)

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes, scene_mean
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective, WeightSchedule, scene_mean
 from nrt.losses.samplers import uniform_box_points
 from nrt.modules.fields.sh_light_field import SHGridLightField
 from nrt.modules.fields.voxel_medium import detached
@@ -81,16 +82,19 @@ def uniform_samples(n: int, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 
 class TransportObjective(Objective):
     """``transport``: :func:`transport_loss` of the light in the medium (without gradient
-    to it) at ``samples.transport_points`` uniform points and travel directions, with
-    ``transport_samples`` strata per march; over K scenes (a family's members, or the
+    to it) at ``points`` uniform points and travel directions, with ``samples`` strata per
+    march; over K scenes (a family's members, or the
     training environments' light fields), point i belongs to scene i mod K (split evenly),
     the mean over all points."""
 
     families = True
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        n = int(stage.hparams.samples["transport_points"])
-        strata = int(stage.hparams.samples["transport_samples"])
+    def __init__(self, name: str, schedule: WeightSchedule, points: int, samples: int):
+        super().__init__(name, schedule)
+        self.points, self.samples = int(points), int(samples)
+
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        n, strata, scenes = self.points, self.samples, context.scenes
         if len(scenes) == 1:
             return self.scene_loss(*scenes[0], n, strata)
         return scene_mean(torch.arange(n) % len(scenes), lambda k, mask:

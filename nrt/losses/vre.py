@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import torch
 
-from nrt.losses.objective import Objective, Scenes
+from nrt.losses.context import StepContext
+from nrt.losses.objective import Objective, WeightSchedule
 from nrt.losses.unbiased import unbiased_square
 from nrt.modules.fields.light_field import LightField
 from nrt.modules.fields.medium import Medium
@@ -43,16 +44,20 @@ def vre_loss(light: LightField, medium: Medium, origins: torch.Tensor, dirs: tor
 
 
 class VREObjective(Objective):
-    """``vre``: the first ``samples.vre_rays`` rays of the batch rendered with
-    ``vre_samples`` strata and ``vre_directions`` in-scattering directions per estimate,
-    with the known lights' first scattering (``stage.direct_source()``)."""
+    """``vre``: the first ``rays`` rays of the batch rendered with ``samples`` strata and
+    ``directions`` in-scattering directions per estimate, with the known lights' first
+    scattering (``context.direct_source``); ``detach_inscatter`` as :class:`RTEObjective`'s."""
 
     name = "vre"
 
-    def loss(self, stage, batch: dict, scenes: Scenes) -> torch.Tensor:
-        [(medium, light)], s = scenes, stage.hparams.samples
-        n = int(s["vre_rays"])
+    def __init__(self, name: str, schedule: WeightSchedule, rays: int, samples: int,
+                 directions: int, detach_inscatter: bool = False):
+        super().__init__(name, schedule)
+        self.rays, self.samples, self.directions = int(rays), int(samples), int(directions)
+        self.detach_inscatter = bool(detach_inscatter)
+
+    def loss(self, batch: dict, context: StepContext) -> torch.Tensor:
+        [(medium, light)], n = context.scenes, self.rays
         return vre_loss(light, medium, batch["origins"][:n], batch["dirs"][:n],
-                        batch["rgb"][:n], batch["background"][:n], int(s["vre_samples"]),
-                        int(s["vre_directions"]), stage.hparams.detach_inscatter,
-                        stage.direct_source())
+                        batch["rgb"][:n], batch["background"][:n], self.samples,
+                        self.directions, self.detach_inscatter, context.direct_source)

@@ -1,7 +1,7 @@
 """What the stages need of the density field, the light field and the medium that Hydra
 builds for them (``model/density_field=<name>``, ``model/light_field=<name>``,
 ``model/medium=<name>``; see
-:mod:`nrt.modules.stages.components`). Each protocol lists the members a stage, its objectives and
+:mod:`nrt.stages.components`). Each protocol lists the members a stage, its objectives and
 its renderers use; a stage builds its components through :func:`build`, which checks them.
 
 Common to every light field: the buffers ``bbox`` (2, 3), the medium box, and

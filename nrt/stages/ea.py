@@ -22,10 +22,11 @@ from nrt.files import atomic_write, writing
 from nrt.metrics import density_agreement
 from nrt.modules.fields.protocols import DensityField, build
 from nrt.modules.renderers.emission_absorption import render_rays
-from nrt.modules.stages.components import as_factory, factory_config, legacy_config
-from nrt.modules.stages.stage import Stage, check_learning_rates
 from nrt.physics.tonemap import log_tonemap, luminance
 from nrt.physics.volume import at_cell_centres
+from nrt.stages.checkpoints import check_checkpoint_file, read_checkpoint
+from nrt.stages.components import as_factory, factory_config
+from nrt.stages.stage import Stage, check_learning_rates
 from nrt.tensorboard import log_image
 
 DENSITY_GRID_FILE = "density_grid.npz"
@@ -40,35 +41,16 @@ FITS = ("Stage 1 (stage=ea) renders a density field with a colour: a module with
         "density(x, latent) and field(x, d, latent) -> (density, rgb), as "
         "model/density_field=hash_grid builds")
 
-EA_FIELD = "nrt.modules.fields.ea_field.EAField"
-"""The density field of checkpoints written before it was a component (their ``field``:
-the :class:`~nrt.modules.fields.ea_field.EAField`'s keywords alone)."""
-
-
-def legacy_density_field(keywords: dict) -> dict:
-    """The config of the density field that a checkpoint written before it was a component
-    records as ``field`` (the EAField's keywords); d_z (``latent_dim``) leaves the keywords,
-    since the stage passes it."""
-    return legacy_config(EA_FIELD)({k: v for k, v in keywords.items() if k != "latent_dim"})
-
-
 def density_field_config(hparams: dict) -> dict:
     """The density field's config (``_target_``, ``_partial_``, keywords) that a stage-1
-    checkpoint's hyperparameters record: ``density_field``, or, in checkpoints written
-    before it was a component, ``field`` translated (:func:`legacy_density_field`)."""
-    if hparams.get("density_field") is not None:
-        return dict(hparams["density_field"])
-    return legacy_density_field(dict(hparams.get("field") or {}))
+    checkpoint's hyperparameters record as ``density_field``."""
+    return dict(hparams["density_field"])
 
 
-def density_field_factory(component: Callable | dict | None, field: dict | None = None
-                          ) -> functools.partial:
+def density_field_factory(component: Callable | dict) -> functools.partial:
     """The density field's factory from what a stage receives: Hydra's partial or a
-    recorded config (``component``), or, where that is None, ``field``: the
-    :class:`~nrt.modules.fields.ea_field.EAField` keywords of a checkpoint written before
-    the density field was a component."""
-    return as_factory((field or {}) if component is None else component, "density_field",
-                      legacy_density_field)
+    recorded config."""
+    return as_factory(component, "density_field")
 
 
 def build_density_field(factory: Callable[..., DensityField], latent_dim: int | None = None
@@ -81,9 +63,8 @@ def build_density_field(factory: Callable[..., DensityField], latent_dim: int | 
 
 
 def latent_dim_of(hparams: dict) -> int:
-    """d_z of a stage-1 checkpoint's field: ``latent_dim`` (in the field's keywords before
-    it was a component); 0 for a single scene."""
-    return int(hparams.get("latent_dim") or (hparams.get("field") or {}).get("latent_dim") or 0)
+    """d_z of a stage-1 checkpoint's field (``latent_dim``); 0 for a single scene."""
+    return int(hparams.get("latent_dim") or 0)
 
 
 class EAModule(Stage):
@@ -94,20 +75,17 @@ class EAModule(Stage):
 
     ``density_field`` is the factory Hydra builds from ``model/density_field`` (a checkpoint
     holds its config); the stage calls it with ``latent_dim`` when that is set (the codes'
-    d_z in generative mode; None for one scene). ``field`` is the key of checkpoints written
-    before the density field was a component (the ``EAField``'s keywords), read when
-    ``density_field`` is absent."""
+    d_z in generative mode; None for one scene)."""
 
-    def __init__(self, density_field: Callable[..., DensityField] | dict | None = None,
+    def __init__(self, density_field: Callable[..., DensityField] | dict,
                  samples_per_ray: int = 64, loss: str = "log_mse", lr: float = 1e-2,
                  eps: float = 1e-15, weight_decay: float = 1e-6, eval_chunk: int = 8192,
-                 density_resolution: int | None = None, latent_dim: int | None = None,
-                 field: dict | None = None):
+                 density_resolution: int | None = None, latent_dim: int | None = None):
         super().__init__()
-        make_field = density_field_factory(density_field, field)
+        make_field = density_field_factory(density_field)
         # the hyperparameters record the field's config: a checkpoint pickles no code
         density_field = factory_config(make_field)
-        self.save_hyperparameters(ignore=["field"])
+        self.save_hyperparameters()
         if loss not in PHOTOMETRIC_LOSSES:
             raise ConfigError(f"losses.photometric must be one of {sorted(PHOTOMETRIC_LOSSES)}, "
                               f"got '{loss}'.")
@@ -211,22 +189,12 @@ class EAModule(Stage):
                                                         res)}
 
 
-def check_checkpoint_file(ckpt_path: str | None, first_stage: str) -> None:
-    """Refuse an ``init.ea_ckpt`` that is no file, naming ``first_stage``, the command that
-    trains the stage-1 run."""
-    if not ckpt_path or not Path(ckpt_path).is_file():
-        raise NrtError(f"init.ea_ckpt='{ckpt_path}' is not a checkpoint file. Train stage 1 "
-                       f"first ({first_stage}) and pass its checkpoints/last.ckpt, or drop "
-                       "init.ea_ckpt to start from the newest EA run of the scene "
-                       "(single-scene stage 2 also runs without a first stage: init=none).")
-
-
 def load_ea_field(ckpt_path: str | None, map_location: str | torch.device = "cpu"
                   ) -> DensityField:
     """The trained density field of a stage-1 checkpoint (for the density queries of the stages
     that start from it); a missing file is a user error naming the fix."""
     check_checkpoint_file(ckpt_path, "nrt-train stage=ea scene=<same scene>")
-    saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+    saved = read_checkpoint(ckpt_path)
     if latent_dim_of(saved.get("hyper_parameters", {})):
         raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a generative EA run over a scene family "
                        "(mode=generative): its field needs a member's latent code. Train stage "

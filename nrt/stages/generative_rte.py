@@ -1,7 +1,7 @@
 """Stage 2 in generative mode (``nrt-train stage=rte mode=generative scene=family
 init.ea_ckpt=<generative EA run>``): the split formulation of
-:mod:`nrt.modules.stages.rte_split` over the K members of a scene family, conditioned on one
-latent code per member (the auto-decoder of :mod:`nrt.modules.stages.generative_ea`, continued).
+:mod:`nrt.stages.rte` over the K members of a scene family, conditioned on one
+latent code per member (the auto-decoder of :mod:`nrt.stages.generative_ea`, continued).
 
 - **Codes.** ``codes`` (K, d_z) start from the generative EA run's and stay optimisable
   (their own Adam group, ``latent_lr``, under the L2 prior ``latent_prior_weight * mean_k
@@ -48,12 +48,12 @@ from nrt.errors import ConfigError, DatasetError
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.modules.fields.voxel_medium import detached
-from nrt.modules.stages.components import as_factory, factory_config, objective_components
-from nrt.modules.stages.ea import build_density_field, density_field_factory
-from nrt.modules.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
-from nrt.modules.stages.rte_split import SPLIT_OBJECTIVES, SplitRTEModule
-from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.volume import at_cell_centres
+from nrt.stages.components import as_factory, factory_config, objective_components
+from nrt.stages.ea import build_density_field, density_field_factory
+from nrt.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
+from nrt.stages.rte import RTEStage
+from nrt.stages.stage import check_learning_rates
 
 log = logging.getLogger(__name__)
 
@@ -61,13 +61,13 @@ FITS = ("Generative stage 2 (stage=rte mode=generative) takes the latent light f
         "medium that conf/mode_stage/generative_rte.yaml sets")
 
 
-class GenerativeRTEModule(SplitRTEModule):
+class GenerativeRTEModule(RTEStage):
     """The split stage 2 over the ``members`` (K) of a family, conditioned on codes of
     ``latent_dim`` (d_z) values. ``ea_field`` (the EA run's density-field config; before
     it was a component, the ``EAField``'s keywords) and ``member_info``
     (``name``, ``seed`` of each member) come from the EA checkpoint (``density.ea_ckpt``)
     when the run starts, and from the stage's own checkpoint when it is loaded; the rest of
-    the arguments are :class:`~nrt.modules.stages.rte_split.SplitRTEModule`'s."""
+    the arguments are :class:`~nrt.stages.rte.RTEStage`'s."""
 
     LIGHT_PROTOCOL = LatentScatteredLightField
     MEDIUM_PROTOCOL = LatentVoxelisedMedium
@@ -90,8 +90,7 @@ class GenerativeRTEModule(SplitRTEModule):
         # the hyperparameters record the components' configs: a checkpoint pickles no code
         light_field = factory_config(as_factory(light_field, "light_field"))
         medium = factory_config(as_factory(medium, "medium"))
-        _, kwargs["objectives"] = objective_components(kwargs.get("objectives"),
-                                                       SPLIT_OBJECTIVES)
+        _, kwargs["objectives"] = objective_components(kwargs.get("objectives"))
         super().__init__(light_field=light_field, medium=medium, **kwargs)
         if ea_field is None:  # a fresh run: the EA run's field, codes and members
             ea_field, field, codes, info = load_generative_ea(density.get("ea_ckpt"))
@@ -196,7 +195,8 @@ class GenerativeRTEModule(SplitRTEModule):
             self._uncollided_fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
         opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives({**batch, "scene": batch["member"]}, scenes)
+        total = self.backward_objectives({**batch, "scene": batch["member"]},
+                                         self.step_context(scenes))
         prior = self.latent_prior()
         if any(self.objectives[name].medium_only for name in self.active_weights()):
             # the codes' regulariser, with their data term (the photos)
@@ -221,7 +221,7 @@ class GenerativeRTEModule(SplitRTEModule):
     def property_grids_for(self, code: torch.Tensor, resolution: int
                            ) -> dict[str, torch.Tensor]:
         """The medium decoded from any code (d_z,) on ``resolution``^3 cells, in the layout
-        of :meth:`~nrt.modules.stages.stage.Stage.property_grids`, on the CPU: the EA density under
+        of :meth:`~nrt.stages.stage.Stage.property_grids`, on the CPU: the EA density under
         the code on the medium's cells, modulated under the code, as in training."""
         code = code.to(self.codes)
         voxels = self.medium.voxels_for(self.density_for(code), code).detached()

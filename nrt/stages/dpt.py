@@ -56,7 +56,7 @@ from nrt.errors import ConfigError, NrtError
 from nrt.modules.fields.coarse_to_fine import check_schedule, resolution_at
 from nrt.modules.fields.path_traced_grids import PathTracedGrids
 from nrt.modules.fields.voxel_medium import bake
-from nrt.modules.stages.stage import Stage, check_learning_rates
+from nrt.stages.stage import Stage, check_learning_rates
 from nrt.tensorboard import log_image
 
 log = logging.getLogger(__name__)
@@ -172,7 +172,7 @@ class DPTModule(Stage):
         every grid from ``init.grids`` resampled to them (``init=grids``)."""
         res, density = self._start_resolution(), self.hparams.density
         if density["source"] == "ea":
-            from nrt.modules.stages.ea import load_ea_field
+            from nrt.stages.ea import load_ea_field
 
             field = load_ea_field(density["ea_ckpt"])
             sigma_t = bake(field.density, res, self.bbox.cpu())
@@ -339,6 +339,7 @@ class DPTModule(Stage):
     # -------------------------------------------------------------- resume
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         """Resize the grids to the checkpoint's resolution before its state is loaded."""
+        super().on_load_checkpoint(checkpoint)
         self._started = True
         self.medium.resize_to_state(checkpoint.get("state_dict", {}), "medium.")
 

@@ -32,17 +32,17 @@ from torch import nn
 from nrt.errors import ConfigError, DatasetError, NrtError
 from nrt.files import atomic_write
 from nrt.modules.fields.protocols import DensityField
-from nrt.modules.stages.components import factory_config
-from nrt.modules.stages.ea import (
+from nrt.run_dirs import read_run_info
+from nrt.stages.checkpoints import check_checkpoint_file, read_checkpoint
+from nrt.stages.components import factory_config
+from nrt.stages.ea import (
     DENSITY_GRID_FILE,
     EAModule,
-    check_checkpoint_file,
     density_field_config,
     density_field_factory,
     latent_dim_of,
 )
-from nrt.modules.stages.stage import check_learning_rates
-from nrt.run_dirs import read_run_info
+from nrt.stages.stage import check_learning_rates
 from nrt.tensorboard import log_image
 
 LATENTS_FILE = "latents.npz"
@@ -53,17 +53,14 @@ class GenerativeEAModule(EAModule):
     """An :class:`EAModule` whose density field is conditioned on one latent code per
     family member (``members`` = K, codes of ``latent_dim`` = d_z >= 1 values, passed to the
     field's factory). Batches carry each ray's ``member``; the rest of the arguments are
-    :class:`EAModule`'s (checkpoints written before the density field was a component hold
-    d_z in ``field``)."""
+    :class:`EAModule`'s."""
 
-    def __init__(self, members: int, latent_dim: int | None = None,
-                 density_field: Callable[..., DensityField] | dict | None = None,
+    def __init__(self, members: int, latent_dim: int,
+                 density_field: Callable[..., DensityField] | dict,
                  latent_init_std: float = 0.01, latent_prior_weight: float = 1e-4,
-                 latent_lr: float = 1e-2, field: dict | None = None, **kwargs):
-        if latent_dim is None:  # a checkpoint from before: d_z in the field's keywords
-            latent_dim = latent_dim_of({"field": field})
+                 latent_lr: float = 1e-2, **kwargs):
         # the hyperparameters record the field's config: a checkpoint pickles no code
-        density_field = factory_config(density_field_factory(density_field, field))
+        density_field = factory_config(density_field_factory(density_field))
         if isinstance(members, bool) or not isinstance(members, int) or members < 1:
             raise ConfigError(f"model.members={members}: the number of family members K "
                               "must be a whole number >= 1 (scene.family.members).")
@@ -168,12 +165,12 @@ def save_latents(run_dir: str | Path, codes: torch.Tensor, names: list[str],
 def load_generative_ea(ckpt_path: str | None) -> tuple[dict, DensityField, torch.Tensor,
                                                        list[dict] | None]:
     """What generative stage 2 takes from a generative EA checkpoint: the density field's
-    config (:func:`~nrt.modules.stages.ea.density_field_config`; its factory takes
+    config (:func:`~nrt.stages.ea.density_field_config`; its factory takes
     ``latent_dim``), the field (on the CPU), the codes (K, d_z) and the members (``index``,
     ``seed``, ``name``, as the run's ``run.json`` records them; None where it has none). A
     missing file, or a single-scene EA run, is a user error naming the fix."""
     check_checkpoint_file(ckpt_path, "nrt-train stage=ea mode=generative scene=family")
-    saved = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+    saved = read_checkpoint(ckpt_path)
     hparams = saved.get("hyper_parameters", {})
     if not latent_dim_of(hparams) or "codes" not in saved.get("state_dict", {}):
         raise NrtError(f"init.ea_ckpt='{ckpt_path}' is a single-scene EA run; stage 2 in "

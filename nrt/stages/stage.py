@@ -20,7 +20,13 @@ Optional, with these defaults:
   trained on a scene family (``mode=generative``); None otherwise.
 - :attr:`Stage.learns_g`: whether g is a learned property that metrics should score
   (default: whenever the scene's phase has a g).
+- :attr:`Stage.voxel_media`: whether the stage learns voxel media, which priors on voxels
+  read (:class:`~nrt.losses.context.StepContext`'s ``voxels``); False.
 - :meth:`Stage.export`: files written into the run folder after training; none.
+
+Every checkpoint a stage saves records nrt's checkpoint format, and a resume from one of
+another format is refused (:mod:`nrt.stages.checkpoints`); a subclass that overrides
+``on_save_checkpoint`` or ``on_load_checkpoint`` calls the base's.
 
 Shared helpers: :meth:`Stage.ground_truth`, :meth:`Stage.progress` (of the run's steps or
 time budget, for schedules), :meth:`Stage.grid_resolution` and :meth:`Stage.view_baselines`
@@ -40,7 +46,8 @@ import torch
 
 from nrt.errors import ConfigError
 from nrt.metrics import psnr
-from nrt.modules.stages.schedules import training_progress
+from nrt.stages.checkpoints import check_format, stamp
+from nrt.stages.schedules import training_progress
 
 
 def check_learning_rates(lr: float | dict[str, float], key: str,
@@ -65,6 +72,9 @@ def check_learning_rates(lr: float | dict[str, float], key: str,
 
 class Stage(L.LightningModule):
     """Base of every stage; see the module's docstring for the contract."""
+
+    voxel_media: bool = False
+    """Whether the stage learns voxel media (the objectives' ``StepContext.voxels``)."""
 
     def __init__(self, effects: dict | None = None):
         super().__init__()
@@ -98,6 +108,15 @@ class Stage(L.LightningModule):
         """Write what the run produced into ``run_dir`` after training; name -> path."""
         return {}
 
+    # ------------------------------------------------------------- checkpoints
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Record the checkpoint format (:func:`~nrt.stages.checkpoints.stamp`)."""
+        stamp(checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Refuse a checkpoint of another format (:func:`~nrt.stages.checkpoints.check_format`)."""
+        check_format(checkpoint, "the checkpoint to resume from")
+
     # ------------------------------------------------------------------ helpers
     def view_baselines(self, batch: dict) -> dict[str, float]:
         """PSNRs (dB) of predictions a learned medium should beat, for one held-out view
@@ -125,7 +144,7 @@ class Stage(L.LightningModule):
         return dm.ground_truth if dm is not None else None
 
     def progress(self) -> float:
-        """How far the run is, in [0, 1] (:func:`~nrt.modules.stages.schedules.training_progress`);
+        """How far the run is, in [0, 1] (:func:`~nrt.stages.schedules.training_progress`);
         0 outside a trainer."""
         return training_progress(self.trainer) if self._trainer is not None else 0.0
 

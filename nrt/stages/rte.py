@@ -42,10 +42,10 @@ from collections.abc import Callable, Mapping
 import torch
 from torch import nn
 
-from nrt.errors import ConfigError, DatasetError
+from nrt.errors import ConfigError
 from nrt.losses.adjoint import adjoint_loss, medium_sensitivity
+from nrt.losses.context import Illumination, StepContext
 from nrt.losses.objective import Objective, build_objectives, objective_class
-from nrt.losses.photo import check_tonemap
 from nrt.losses.samplers import uniform_box_points
 from nrt.losses.transport import uniform_samples, unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr
@@ -54,25 +54,14 @@ from nrt.modules.fields.sh_light_field import SHGrid, SHGridLightField
 from nrt.modules.fields.voxel_medium import detached, extinction
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import render_view_rays, transmitted_background
-from nrt.modules.stages.components import (
-    as_factory,
-    factory_config,
-    legacy_config,
-    objective_components,
-)
-from nrt.modules.stages.ea import load_ea_field
-from nrt.modules.stages.rte import Illumination, RadiativeTransferStage
-from nrt.modules.stages.stage import check_learning_rates
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.sky_light import sky_inscatter, uncollided_sh
-from nrt.physics.volume import sample_grid
+from nrt.stages.components import stage_2_components
+from nrt.stages.radiative_transfer import RadiativeTransferStage
+from nrt.stages.stage import check_learning_rates
+from nrt.stages.start import DensityStart
 
 log = logging.getLogger(__name__)
-
-SPLIT_OBJECTIVES = {"photo": "nrt.losses.photo.PhotoObjective",
-                    "transport": "nrt.losses.transport.TransportObjective"}
-"""The split formulation's objectives by name (conf/losses/rte.yaml): those of a checkpoint
-written before ``losses.objectives`` chose them."""
 
 FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
         "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
@@ -85,56 +74,29 @@ COUPLING = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
 (off by default; docs/stage2.md, "Coupling")."""
 
 
-BLEND_FLOOR = 1e-4
-"""Extinction (per unit length) below which a density counts as this floor in
-:func:`geometric_blend`, so that an empty cell of either side does not zero the blend."""
-
-
-def truth_share(density: Mapping) -> float:
-    """``init.truth_share`` of an ``init=oracle`` start, in [0, 1] (1, the truth alone, when
-    unset); a clear error otherwise."""
-    share = density.get("truth_share", 1.0)
-    share = 1.0 if share is None else float(share)
-    if not 0.0 <= share <= 1.0:
-        raise ConfigError(f"init.truth_share={share}: the truth's share of the start (init=oracle) "
-                          "must lie in [0, 1]; 1 starts from the truth, 0.5 halfway from the EA "
-                          "density to it.")
-    return share
-
-
-def geometric_blend(ea: torch.Tensor, truth: torch.Tensor, share: float) -> torch.Tensor:
-    """``ea^(1 - share) truth^share``, each floored at :data:`BLEND_FLOOR`: the start halfway
-    (``share`` 0.5) between two extinctions in the log space the medium modulates."""
-    return ea.clamp_min(BLEND_FLOOR) ** (1.0 - share) * truth.clamp_min(BLEND_FLOOR) ** share
-
-
-class SplitRTEModule(RadiativeTransferStage):
+class RTEStage(RadiativeTransferStage):
     """A scattered-light field and a voxelised medium (by default the SH grid and the voxel
     medium) on the photo and transport objectives. The objectives and renderings take the
     medium and the light as arguments, so the generative stage
-    (:mod:`nrt.modules.stages.generative_rte`) runs them per family member."""
+    (:mod:`nrt.stages.generative_rte`) runs them per family member."""
 
     LIGHT_PROTOCOL: type = ScatteredLightField
     MEDIUM_PROTOCOL: type = VoxelisedMedium
     FITS = FITS
     MANY_ENVIRONMENTS = True
+    voxel_media = True
 
     def __init__(self, effects: dict, light_field: Callable[..., ScatteredLightField] | dict,
                  medium: Callable[..., VoxelisedMedium] | dict, density: dict,
                  weights: dict, samples: dict, lr: dict, lr_final_factor: float = 0.1,
-                 light_warmup: float = 0.05, photo_tonemap: str = "log",
+                 light_warmup: float = 0.05,
                  sun: dict | None = None, eval_chunk: int = 4096,
                  property_resolution: int | None = None, coupling: dict | None = None,
                  objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
         super().__init__(effects, density, sun, property_resolution)
-        make_objectives, objectives = objective_components(objectives, SPLIT_OBJECTIVES)
-        make_light = as_factory(light_field, "light_field",
-                                legacy_config("nrt.modules.fields.sh_light_field.SHGridLightField"))
-        make_medium = as_factory(medium, "medium",
-                                 legacy_config("nrt.modules.fields.voxel_medium.VoxelMedium"))
-        # the hyperparameters record the components' configs: a checkpoint pickles no code
-        light_field, medium = factory_config(make_light), factory_config(make_medium)
-        self.save_hyperparameters()
+        (make_light, make_medium, make_objectives), (light_field, medium, objectives) = \
+            stage_2_components(light_field, medium, objectives)
+        self.save_hyperparameters()  # the components' configs
         self.automatic_optimization = False
         waits = {name: light_warmup for name, make in make_objectives.items()
                  if objective_class(make, f"losses.objectives.{name}").medium_only}
@@ -144,7 +106,6 @@ class SplitRTEModule(RadiativeTransferStage):
         if not self.learns_medium:  # forward mode: no medium to teach
             self.objectives = {name: unit for name, unit in self.objectives.items()
                                if not unit.medium_only}
-        check_tonemap(photo_tonemap)
         check_learning_rates(lr, "model.lr", ("light", "medium"))
         self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
                            effects=effects)
@@ -166,10 +127,7 @@ class SplitRTEModule(RadiativeTransferStage):
             self.adjoint = SHGridLightField(self.light.degree, self.light.resolution)
             self.register_buffer("adjoint_source", torch.zeros_like(self.light.coefficients))
         self._photo_coefficients: torch.Tensor | None = None
-        self._ea_ckpt = density.get("ea_ckpt")
-        if density["source"] == "oracle" and truth_share(density) < 1.0 and not self._ea_ckpt:
-            raise ConfigError("init=oracle with init.truth_share < 1 blends the truth with an EA "
-                              "run's density: pass init.ea_ckpt=<path/to/last.ckpt>.")
+        self.start = DensityStart(density)
         self._baked = False
         self._uncollided_fresh = False
 
@@ -190,8 +148,8 @@ class SplitRTEModule(RadiativeTransferStage):
             if len(self.illuminations) > 1:
                 log.info("Stage 2 trains on %d environments, a light field each",
                          len(self.illuminations))
-        if self.learns_medium and self.hparams.density["source"] in ("ea", "oracle") \
-                and not self._baked and self.datamodule() is not None:
+        if self.learns_medium and self.start.bakes and not self._baked \
+                and self.datamodule() is not None:
             self.bake_density()  # a resumed run loads the same values
             self._baked = True
 
@@ -217,34 +175,9 @@ class SplitRTEModule(RadiativeTransferStage):
         return self.illuminations[0]
 
     def bake_density(self) -> None:
-        """Bake the EA run's density into the medium, or with ``init=oracle`` the dataset's
-        true extinction (its channel mean): where stage 2 goes from the truth; with
-        ``init.truth_share`` a < 1, the geometric blend ``EA^(1 - a) truth^a``: how the end
-        depends on the start (docs/stage2.md, "The start decides the end")."""
-        if self.hparams.density["source"] != "oracle":
-            ea = load_ea_field(self._ea_ckpt).to(self.medium.bbox.device)
-            self.medium.set_density(ea.density)
-            log.info("Stage 2 modulates the EA density of %s", self._ea_ckpt)
-            return
-        truth = self.datamodule().ground_truth
-        if truth is None:
-            raise DatasetError("init=oracle needs the dataset's ground_truth.npz (the true "
-                               "extinction it starts from); this dataset has none.")
-        true_extinction = (truth["sigma_a"] + truth["sigma_s"]).float().mean(-1, keepdim=True)
-        bbox = self.medium.bbox
-
-        def true_density(x: torch.Tensor) -> torch.Tensor:
-            return sample_grid(true_extinction.to(x.device), x, bbox)[..., 0]
-
-        share = truth_share(self.hparams.density)
-        if share == 1.0:
-            self.medium.set_density(true_density)
-            log.info("Stage 2 modulates the TRUE extinction (init=oracle, a diagnostic)")
-            return
-        ea = load_ea_field(self._ea_ckpt).to(bbox.device)
-        self.medium.set_density(lambda x: geometric_blend(ea.density(x), true_density(x), share))
-        log.info("Stage 2 modulates EA^%.2f x TRUTH^%.2f (init=oracle, a diagnostic), the EA "
-                 "density of %s", 1.0 - share, share, self._ea_ckpt)
+        """Bake the start (:class:`~nrt.stages.start.DensityStart`: the EA run's density, or
+        with ``init=oracle`` the truth or its blend with it) into the medium."""
+        self.start.bake(self.medium, self.datamodule().ground_truth)
 
     def param_groups(self) -> list[dict]:
         """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
@@ -272,6 +205,19 @@ class SplitRTEModule(RadiativeTransferStage):
         """The learned media composed anew (a graph of their own, for an objective that
         reads them after another's backward has freed the step's): one here, the medium."""
         return [self.medium.voxels()]
+
+    def step_context(self, scenes) -> StepContext:
+        """The base's context with the photos' in-scattering (:meth:`photo_source`) and the
+        learned voxel media (:meth:`fresh_voxels`; none in forward mode)."""
+        context = super().step_context(scenes)
+        context.photo_source = self.photo_source
+        context.voxels = self.fresh_voxels if self.learns_medium else None
+        return context
+
+    def photo_source(self, medium, light: ScatteredLightField):
+        """:meth:`inscatter` of ``light`` as the photos read it (:meth:`photo_light`)."""
+        read, coefficients_grad = self.photo_light(light)
+        return self.inscatter(medium, read, coefficients_grad)
 
     def inscatter(self, medium, light: ScatteredLightField, coefficients_grad: bool = False):
         """In-scattering of all light for the camera rays' VRE: the first scattering of the
@@ -353,7 +299,7 @@ class SplitRTEModule(RadiativeTransferStage):
         scenes = [(medium, light) for light in self.env_lights]
         if len(scenes) > 1:
             batch = {**batch, "scene": self.scenes_of(batch["env"])}
-        total = self.backward_objectives(batch, scenes)
+        total = self.backward_objectives(batch, self.step_context(scenes))
         if self._photo_coefficients is not None and self._photo_coefficients.grad is not None:
             self.adjoint_step(medium, self._photo_coefficients.grad)
         self._photo_coefficients = None
@@ -435,6 +381,7 @@ class SplitRTEModule(RadiativeTransferStage):
         environments than one are built to receive theirs. The uncollided caches come
         with the state too: a resumed run refreshes them on their schedule, as the run left
         alone does, not at once."""
+        super().on_load_checkpoint(checkpoint)
         self._baked = True
         self._uncollided_fresh = checkpoint.get("global_step", 0) > 0
         more = {key.split(".")[1] for key in checkpoint["state_dict"]
