@@ -221,11 +221,11 @@ def test_coupling_options_carry_photo_gradients_through_the_scattered_light(tmp_
     with finite values everywhere, and the adjoint's state is part of the checkpoint."""
     model, dm = build(tmp_path, "model.coupling.adjoint=true",
                       "model.coupling.unrolled_directions=1", "budget.rte.light_warmup=0.2")
-    assert model.adjoint is not None and "adjoint_source" in model.state_dict()
+    assert model.adjoint is not None and "adjoint.source" in model.state_dict()
     trains_finite(model, dm, 10)
-    assert model.adjoint_source.abs().max() > 0
-    assert model.adjoint.coefficients.detach().abs().max() > 0
-    assert "adjoint.coefficients" in model.state_dict()
+    assert model.adjoint.source.abs().max() > 0
+    assert model.adjoint.grid.coefficients.detach().abs().max() > 0
+    assert "adjoint.grid.coefficients" in model.state_dict()
 
 
 def test_oracle_start_bakes_the_true_extinction(tmp_path):
@@ -291,7 +291,7 @@ def test_several_environments_train_a_light_field_each(tmp_path):
     assert list(maps) == [0, 1] and len(model.env_lights) == len(model.illuminations) == 2
     for light, sky, env in zip(model.env_lights, model.illuminations, maps.values(),
                                strict=True):
-        assert model.illumination_of(light) is sky
+        assert model.sky_lights.illumination_of(light) is sky
         assert light.radiance_scale.item() == pytest.approx(mean_radiance(env), rel=1e-6)
         assert light.coefficients.abs().max() > 0  # trained by the transport objective
     first, second = model.env_lights
@@ -299,7 +299,7 @@ def test_several_environments_train_a_light_field_each(tmp_path):
     # the suns differ too: each sky's first scattering comes from its own sun
     assert not torch.allclose(model.illuminations[0].lights.sun_directions,
                               model.illuminations[1].lights.sun_directions)
-    assert model.scenes_of(torch.tensor([1, 0, 0, 1])).tolist() == [1, 0, 0, 1]
+    assert model.sky_lights.scenes_of(torch.tensor([1, 0, 0, 1])).tolist() == [1, 0, 0, 1]
     view = next(b for b in dm.val_dataloader() if b["env"] == 1)
     torch.manual_seed(0)
     seen = model.predict_view(view)

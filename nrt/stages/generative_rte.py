@@ -36,7 +36,6 @@ their means. For other tools (``nrt-sample``) the stage decodes a medium from an
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,7 +46,6 @@ from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import ConfigError, DatasetError
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
-from nrt.modules.fields.voxel_medium import detached
 from nrt.physics.volume import at_cell_centres
 from nrt.stages.components import as_factory, factory_config, objective_components
 from nrt.stages.ea import build_density_field, density_field_factory
@@ -186,14 +184,8 @@ class GenerativeRTEModule(RTEStage):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         self._update_resolution()
-        start = time.perf_counter()
-        due = self.uncollided_due()
         scenes = [self.member_scene(k) for k in range(self.codes.shape[0])]
-        if due:
-            for medium, light in scenes:
-                self.refresh_uncollided(detached(medium), light)
-            self._uncollided_fresh = True
-        self.log("time/step_uncollided_s", time.perf_counter() - start)
+        self.refresh_uncollided(scenes)
         opt.zero_grad(set_to_none=True)
         total = self.backward_objectives({**batch, "scene": batch["member"]},
                                          self.step_context(scenes))

@@ -24,10 +24,14 @@ Two objectives, chosen by ``losses.objectives`` (their weights in ``losses.weigh
 The medium is chosen by ``model/medium`` (the protocol
 :class:`~nrt.modules.fields.protocols.VoxelisedMedium`), by default
 :class:`~nrt.modules.fields.voxel_medium.VoxelMedium`: the frozen EA density baked on a grid,
-modulated by a grid that doubles during the run. The SH projection of the uncollided light
-at the light field's cache points is refreshed from the current medium every
-``samples.uncollided_every`` steps. The photo objective starts after ``light_warmup`` of
-the run, so the medium does not explain light the light field has not learned yet.
+modulated by a grid that doubles during the run. The photo objective starts after
+``light_warmup`` of the run, so the medium does not explain light the light field has not
+learned yet.
+
+Components, each in its own module: a light field per training sky
+(:mod:`~nrt.stages.sky_lights`), the density start (:mod:`~nrt.stages.start`), the
+uncollided light's cache refreshed from the current medium
+(:mod:`~nrt.stages.uncollided`) and the optional coupling (:mod:`~nrt.stages.coupling`).
 
 Forward mode (``stage=forward``): the medium is the dataset's ground truth and only the
 transport objective runs.
@@ -43,35 +47,29 @@ import torch
 from torch import nn
 
 from nrt.errors import ConfigError
-from nrt.losses.adjoint import adjoint_loss, medium_sensitivity
-from nrt.losses.context import Illumination, StepContext
+from nrt.losses.context import StepContext
 from nrt.losses.objective import Objective, build_objectives, objective_class
-from nrt.losses.samplers import uniform_box_points
-from nrt.losses.transport import uniform_samples, unrolled_inscatter
+from nrt.losses.transport import unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
-from nrt.modules.fields.sh_light_field import SHGrid, SHGridLightField
 from nrt.modules.fields.voxel_medium import detached, extinction
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import render_view_rays, transmitted_background
 from nrt.physics.direct_light import direct_inscatter
-from nrt.physics.sky_light import sky_inscatter, uncollided_sh
+from nrt.physics.sky_light import sky_inscatter
 from nrt.stages.components import stage_2_components
+from nrt.stages.coupling import AdjointCoupling, coupling_settings
 from nrt.stages.radiative_transfer import RadiativeTransferStage
+from nrt.stages.sky_lights import SkyLights
 from nrt.stages.stage import check_learning_rates
 from nrt.stages.start import DensityStart
+from nrt.stages.uncollided import UncollidedCache
 
 log = logging.getLogger(__name__)
 
 FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
         "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
         "paper's formulation (experiment=rte_paper)")
-
-
-COUPLING = {"unrolled_directions": 0, "unrolled_samples": 8, "adjoint": False,
-            "adjoint_blend": 0.5}
-"""``model.coupling``'s keys and defaults: the photos' gradient through the scattered light
-(off by default; docs/stage2.md, "Coupling")."""
 
 
 class RTEStage(RadiativeTransferStage):
@@ -109,42 +107,27 @@ class RTEStage(RadiativeTransferStage):
         check_learning_rates(lr, "model.lr", ("light", "medium"))
         self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
                            effects=effects)
-        self._make_light = make_light
         self.more_lights = nn.ModuleList()  # the 2nd, 3rd ... training environment's
-        self._scene_of_env = torch.zeros(0, dtype=torch.long)  # dataset env -> its light
+        self.sky_lights = SkyLights(self.light, self.more_lights, lambda: build(
+            make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS, effects=self.effects))
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
             self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
-        unknown = set(coupling or {}) - set(COUPLING)
-        if unknown:
-            raise ConfigError(f"model.coupling has unknown keys {sorted(unknown)}; the keys are "
-                              f"{list(COUPLING)} (conf/model/rte.yaml).")
-        self.coupling = {**COUPLING, **(coupling or {})}
-        self.adjoint: SHGridLightField | None = None  # the adjoint grid, with coupling.adjoint
+        self.coupling = coupling_settings(coupling)
+        self.adjoint: AdjointCoupling | None = None  # with coupling.adjoint
         if self.coupling["adjoint"] and self.learns_medium:
-            if not isinstance(self.light, SHGridLightField):
-                raise ConfigError("model.coupling.adjoint=true needs model/light_field=sh_grid "
-                                  "(the adjoint is solved on the same SH grid).")
-            self.adjoint = SHGridLightField(self.light.degree, self.light.resolution)
-            self.register_buffer("adjoint_source", torch.zeros_like(self.light.coefficients))
-        self._photo_coefficients: torch.Tensor | None = None
+            self.adjoint = AdjointCoupling(self.light, self.coupling["adjoint_blend"])
         self.start = DensityStart(density)
         self._baked = False
-        self._uncollided_fresh = False
+        self.uncollided = UncollidedCache(samples)
 
     # ----------------------------------------------------------------- set-up
     def setup(self, stage: str) -> None:
         super().setup(stage)
         if self.illuminations:
-            self.add_lights(len(self.illuminations))
             if len(self.illuminations) > 1 and self.adjoint is not None:
                 raise ConfigError("model.coupling.adjoint=true solves the adjoint of one "
                                   "environment's light; train on one (stage.environments=[0]).")
-            for light, sky in zip(self.env_lights, self.illuminations, strict=True):
-                light.bbox.copy_(self.light.bbox)
-                light.radiance_scale.fill_(sky.scale)
-            indices = [sky.index for sky in self.illuminations]
-            self._scene_of_env = torch.full((max(indices) + 1,), -1, dtype=torch.long)
-            self._scene_of_env[indices] = torch.arange(len(indices))
+            self.sky_lights.attach(self.illuminations, self.light.bbox, self.device)
             if len(self.illuminations) > 1:
                 log.info("Stage 2 trains on %d environments, a light field each",
                          len(self.illuminations))
@@ -156,23 +139,8 @@ class RTEStage(RadiativeTransferStage):
     @property
     def env_lights(self) -> list[ScatteredLightField]:
         """The light field of each training environment, in the order of
-        :attr:`illuminations`."""
-        return [self.light, *self.more_lights]
-
-    def add_lights(self, count: int) -> None:
-        """Build light fields until there is one for each of ``count`` environments."""
-        while len(self.env_lights) < count:
-            self.more_lights.append(build(self._make_light, self.LIGHT_PROTOCOL, "light_field",
-                                          self.FITS, effects=self.effects).to(self.device))
-
-    def illumination_of(self, light: ScatteredLightField) -> Illumination:
-        """The environment ``light`` is the scattered light of. A light that is not one of
-        :attr:`env_lights` (a family member's, the adjoint's read of the stage's own) comes
-        from a stage with one environment, the first."""
-        for field, sky in zip(self.env_lights, self.illuminations, strict=True):
-            if light is field:
-                return sky
-        return self.illuminations[0]
+        :attr:`illuminations` (:class:`~nrt.stages.sky_lights.SkyLights`)."""
+        return self.sky_lights.fields
 
     def bake_density(self) -> None:
         """Bake the start (:class:`~nrt.stages.start.DensityStart`: the EA run's density, or
@@ -226,7 +194,7 @@ class RTEStage(RadiativeTransferStage):
         the coefficients only with ``coefficients_grad``)."""
         s = self.hparams.samples
         sigma_t = extinction(medium)
-        sky = self.illumination_of(light)
+        sky = self.sky_lights.illumination_of(light)
 
         def source(x, w, props):
             total = sky_inscatter(x, w, props.g, sigma_t, medium.bbox, sky.rest,
@@ -244,29 +212,6 @@ class RTEStage(RadiativeTransferStage):
             return total
         return source
 
-    @torch.no_grad()
-    def refresh_uncollided(self, medium, light: ScatteredLightField) -> None:
-        """SH projection of the uncollided light of ``light``'s environment in ``medium`` at
-        its cache points (the first refresh replaces the cache, later ones blend into it)."""
-        s = self.hparams.samples
-        sigma_t = extinction(medium)
-        sky = self.illumination_of(light)
-        pts = light.cache_points()
-        chunk = int(s.get("uncollided_chunk", 2048))
-        coef = torch.cat([uncollided_sh(pts[i:i + chunk], sigma_t, light.bbox,
-                                        sky.rest, sky.sampler, sky.lights,
-                                        light.degree, int(s["uncollided_directions"]),
-                                        int(s["shadow_steps"]))
-                          for i in range(0, len(pts), chunk)])
-        blend = 1.0 if not self._uncollided_fresh else float(s.get("uncollided_blend", 1.0))
-        light.set_uncollided(coef, blend)
-
-    def uncollided_due(self) -> bool:
-        """Whether this step refreshes the uncollided cache (first, then every
-        ``samples.uncollided_every`` steps)."""
-        every = int(self.hparams.samples["uncollided_every"])
-        return not self._uncollided_fresh or self.global_step % every == 0
-
     def _update_resolution(self) -> None:
         if self.learns_medium and \
                 self.medium.follow_schedule(self.progress(), self.optimizers().optimizer):
@@ -277,73 +222,58 @@ class RTEStage(RadiativeTransferStage):
     def photo_light(self, light: ScatteredLightField) -> tuple[ScatteredLightField, bool]:
         """``light`` as the photo objective reads it, and whether its coefficients take
         gradient there: as it is, without; with the adjoint on, the stage's own light read
-        through a leaf whose gradient becomes the adjoint's source (:meth:`adjoint_step`)."""
+        through a leaf whose gradient becomes the adjoint's source
+        (:class:`~nrt.stages.coupling.AdjointCoupling`)."""
         if light is not self.light or self.adjoint is None:
             return light, False
-        leaf = light.coefficients.detach().requires_grad_(True)
-        self._photo_coefficients = leaf
-        return SHGrid(leaf, light.uncollided, light.degree, light.bbox,
-                      light.radiance_scale), True
+        return self.adjoint.photo_light(light), True
+
+    def refresh_uncollided(self, scenes) -> None:
+        """Refresh the uncollided cache of the light of each (medium, light) pair of
+        ``scenes`` in its medium (without gradient) when it is due
+        (:class:`~nrt.stages.uncollided.UncollidedCache`), logging the seconds."""
+        start = time.perf_counter()
+        if self.uncollided.due(self.global_step):
+            for medium, light in scenes:
+                self.uncollided.refresh(detached(medium), light,
+                                        self.sky_lights.illumination_of(light))
+            self.uncollided.fresh = True
+        self.log("time/step_uncollided_s", time.perf_counter() - start)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         self._update_resolution()
         medium = self.transport_medium()
-        start = time.perf_counter()
-        if self.uncollided_due():
-            for light in self.env_lights:
-                self.refresh_uncollided(detached(medium), light)
-            self._uncollided_fresh = True
-        self.log("time/step_uncollided_s", time.perf_counter() - start)
-        opt.zero_grad(set_to_none=True)
         scenes = [(medium, light) for light in self.env_lights]
+        self.refresh_uncollided(scenes)
+        opt.zero_grad(set_to_none=True)
         if len(scenes) > 1:
-            batch = {**batch, "scene": self.scenes_of(batch["env"])}
+            batch = {**batch, "scene": self.sky_lights.scenes_of(batch["env"])}
         total = self.backward_objectives(batch, self.step_context(scenes))
-        if self._photo_coefficients is not None and self._photo_coefficients.grad is not None:
-            self.adjoint_step(medium, self._photo_coefficients.grad)
-        self._photo_coefficients = None
+        grad = self.adjoint.take_gradient() if self.adjoint is not None else None
+        if grad is not None:
+            self.adjoint_step(medium, grad)
         if self.learns_medium:
             self.log("train/medium_resolution", float(self.medium.resolution))
         opt.step()
         self.lr_schedulers().step()
         return torch.as_tensor(total)
 
-    def scenes_of(self, env: torch.Tensor) -> torch.Tensor:
-        """Each ray's position among the training environments (its light field in
-        :attr:`env_lights`), from its position ``env`` (B,) among the dataset's."""
-        return self._scene_of_env[env.cpu()]
-
     def adjoint_step(self, medium, grad: torch.Tensor) -> None:
-        """Fold the photo loss's gradient to the coefficient grid (``grad``) into the adjoint
-        source, train the adjoint grid one step toward its equation, and backpropagate the
-        medium's sensitivity through the scattered light (:mod:`nrt.losses.adjoint`)."""
+        """One step of the adjoint coupling from the photo loss's gradient ``grad`` to the
+        scattered light's coefficients (:meth:`AdjointCoupling.backward`), logged."""
         start = time.perf_counter()
-        light, bbox = self.light, self.light.bbox
-        cell_volume = torch.prod(bbox[1] - bbox[0]) / light.resolution ** 3
-        blend = float(self.coupling["adjoint_blend"])
-        self.adjoint_source.mul_(1 - blend).add_(blend * grad / cell_volume)
-        q_scale = self.adjoint_source.square().mean().sqrt().clamp_min(1e-30)
-        one = self.adjoint.radiance_scale
-        adjoint = SHGrid(self.adjoint.coefficients, self.adjoint.uncollided, light.degree,
-                         bbox, one)
-        source = SHGrid(self.adjoint_source / q_scale, self.adjoint.uncollided, light.degree,
-                        bbox, one)
-        n = int(self.hparams.samples["transport_points"])
-        pts, dirs = uniform_samples(n, bbox)
-        loss = adjoint_loss(adjoint, source, detached(medium), pts, dirs,
-                            int(self.hparams.samples["transport_samples"]))
-        self.manual_backward(loss)
-        pts = uniform_box_points(n, bbox)
-        self.manual_backward(medium_sensitivity(adjoint, light.grid(), self.medium.voxels(),
-                                                pts, float(q_scale)))
-        self.log("train/loss_adjoint", loss.detach())
+        s = self.hparams.samples
+        loss = self.adjoint.backward(self.light, medium, self.medium.voxels, grad,
+                                     int(s["transport_points"]), int(s["transport_samples"]),
+                                     self.manual_backward)
+        self.log("train/loss_adjoint", loss)
         self.log("time/step_adjoint_s", time.perf_counter() - start)
 
     # ------------------------------------------------------------- validation
     def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
         """:meth:`predict_pixels` of a held-out view lit by its own environment's light."""
-        light = self.env_lights[int(self._scene_of_env[int(batch["env"])])]
+        light = self.sky_lights.of_env(int(batch["env"]))
         with torch.no_grad():
             return self.render_pixels(batch["origins"], batch["dirs"], batch["background"],
                                       self.transport_medium(), light)
@@ -383,7 +313,7 @@ class RTEStage(RadiativeTransferStage):
         alone does, not at once."""
         super().on_load_checkpoint(checkpoint)
         self._baked = True
-        self._uncollided_fresh = checkpoint.get("global_step", 0) > 0
+        self.uncollided.fresh = checkpoint.get("global_step", 0) > 0
         more = {key.split(".")[1] for key in checkpoint["state_dict"]
                 if key.startswith("more_lights.")}
-        self.add_lights(1 + len(more))
+        self.sky_lights.grow(1 + len(more), self.device)
