@@ -18,7 +18,8 @@ scenes, seconds), Table 2 (anisotropic set, g scored weighted by the true sigma_
 256 px, 450 views), and the slices figures, from the recorded files alone.
 
     python -m benchmarks.paper_tables run [--iso 8] [--aniso 8] [--preset cpu]
-        [--budget-s 600] [--every-s 50] [--ablation-scenes N] [--ablations a,b] [--data DIR]
+        [--budget-s 600] [--every-s 50] [--ablation-scenes N] [--ablations a,b]
+        [--methods rte,dpt] [--data DIR]
     python -m benchmarks.paper_tables redraw [--data DIR] [--figures DIR]
 """
 
@@ -71,14 +72,15 @@ def scene_overrides(set_name: str, phase: str, scene: dict) -> list[str]:
             "scene.medium.g_range=[-0.5,0.5]"]
 
 
-def planned_runs(sets: dict, n: dict[str, int], ablation_scenes: int,
-                 ablations: list[str]) -> list[tuple[str, dict, str, list[str]]]:
-    """(set, scene, method, overrides) of every run, in order: each scene's methods, then
-    the ablations of the first isotropic scenes."""
+def planned_runs(sets: dict, n: dict[str, int], ablation_scenes: int, ablations: list[str],
+                 methods: list[str] | None = None) -> list[tuple[str, dict, str, list[str]]]:
+    """(set, scene, method, overrides) of every run, in order: each scene's methods (all of
+    the sets file's, or ``methods``), then the ablations of the first isotropic scenes."""
     runs = []
     for set_name in ("iso", "aniso"):
         for scene in sets["sets"][set_name]["scenes"][:n[set_name]]:
-            runs += [(set_name, scene, m, o) for m, o in sets["methods"].items()]
+            runs += [(set_name, scene, m, o) for m, o in sets["methods"].items()
+                     if methods is None or m in methods]
     for scene in sets["sets"]["iso"]["scenes"][:min(ablation_scenes, n["iso"])]:
         runs += [("iso", scene, a, sets["ablations"][a]) for a in ablations]
     return runs
@@ -97,17 +99,20 @@ def keep_slices(run: Path, folder: Path, method: str) -> None:
 def run_all(args) -> None:
     sets = load_sets(args.sets)
     ablations = args.ablations.split(",") if args.ablations else list(sets["ablations"])
-    unknown = sorted(set(ablations) - set(sets["ablations"]))
-    if unknown:
-        sys.exit(f"nrt: error: --ablations: {', '.join(unknown)} unknown; known: "
-                 f"{', '.join(sets['ablations'])}.")
+    methods = args.methods.split(",") if args.methods else list(sets["methods"])
+    for flag, names, known in (("--ablations", ablations, sets["ablations"]),
+                               ("--methods", methods, sets["methods"])):
+        unknown = sorted(set(names) - set(known))
+        if unknown:
+            sys.exit(f"nrt: error: {flag}: {', '.join(unknown)} unknown; known: "
+                     f"{', '.join(known)}.")
     n = {"iso": args.iso, "aniso": args.aniso}
     for set_name, count in n.items():
         size = len(sets["sets"][set_name]["scenes"])
         if not 0 <= count <= size:
             sys.exit(f"nrt: error: --{set_name}={count}: the set '{set_name}' of {args.sets} has "
                      f"{size} scenes; ask for 0 to {size}.")
-    runs = planned_runs(sets, n, args.ablation_scenes, ablations)
+    runs = planned_runs(sets, n, args.ablation_scenes, ablations, methods)
     firsts = {(s, sets["sets"][s]["scenes"][0]["seed"]) for s in n if n[s] > 0}
     spent: list[float] = []
     for i, (set_name, scene, method, stage_overrides) in enumerate(runs, 1):
@@ -228,6 +233,7 @@ def main() -> None:
     run.add_argument("--aniso", type=int, default=8, help="scenes of the anisotropic set")
     run.add_argument("--ablation-scenes", type=int, help="default: the sets file's")
     run.add_argument("--ablations", help="comma-separated names (default: all of the file's)")
+    run.add_argument("--methods", help="comma-separated names (default: all of the file's)")
     run.add_argument("--budget-s", type=float, default=600.0)
     run.add_argument("--every-s", type=float, default=50.0)
     run.add_argument("--preset", default="cpu")
