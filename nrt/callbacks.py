@@ -387,8 +387,10 @@ class LastCheckpoint(ModelCheckpoint):
         super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
 
     def on_train_end(self, trainer, pl_module) -> None:
-        if self._defer_save_until_validation:  # validation did not come after all
-            self._defer_save_until_validation = False
+        """The end of training is always in ``last.ckpt`` (a deferred save whose validation
+        did not come, or a run shorter than ``every_n_train_steps``)."""
+        self._defer_save_until_validation = False
+        if self._last_global_step_saved != trainer.global_step:
             self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
 
 

@@ -11,6 +11,7 @@ import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
 
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
@@ -358,7 +359,23 @@ def check_arguments(cfg: DictConfig, choices: Mapping[str, str] | None = None) -
                 if str(v.get("_target_", "")).startswith("nrt.")}}
     for root, node in roots.items():
         if node is not None:
-            _check_node(OmegaConf.to_container(node, resolve=True), root, choices)
+            _check_node(_resolved(node), root, choices)
+
+
+def _resolved(node: DictConfig) -> dict:
+    """``node`` as a plain dict with its interpolations resolved, except those of Hydra's
+    own ``${hydra:...}`` resolver outside a Hydra run (a composed config in a test or a
+    benchmark): they are left as the strings they are (a path, never a shape mistake)."""
+    raw = OmegaConf.to_container(node, resolve=False)
+    out = {}
+    for key, value in raw.items():
+        if isinstance(value, str) and "${hydra:" in value and not HydraConfig.initialized():
+            out[key] = value
+            continue
+        value = node[key]
+        out[key] = OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) \
+            else value
+    return out
 
 
 def _check_node(node, key: str, choices: Mapping[str, str]) -> None:
