@@ -1,6 +1,6 @@
 """The differentiable path-tracing baseline (``stage=dpt``) through the real CLI.
 
-Must show (issue 6): a few dozen steps on the ``tiny`` preset lower the image loss and the
+What it shows: a few dozen steps on the ``tiny`` preset lower the image loss and the
 property MSE from the EA initialisation. The image loss is read twice: from training (the
 per-step loss, averaged over windows early and late) and independently of training, by
 nrt-eval's Mitsuba re-render of the held-out views from the EA start and from the result;

@@ -285,10 +285,10 @@ def test_each_code_reconstructs_its_own_member_best(trained):
     compositing's final transmittance (2026-11-23, reverted) gave member 1 106.6 against
     the others' mean 132.4 (0.805): a single row's ratio moves by ~0.1 with float
     rounding, which differs between machines. The test asks every row for own < the
-    others' mean (the issue's "better than another scene's", with the worst row measured
-    0.805) and the rows' mean ratio for < 0.6 (measured 2026-11-24: rows 0.37, 0.75, 0.19,
-    0.24, mean 0.39; a row moving by 0.1 moves the mean by 0.025); the result follows
-    stage 2's convergence on each member, which is what issue 11 is about."""
+    others' mean ("better than another scene's", with the worst row measured 0.805) and the
+    rows' mean ratio for < 0.6 (measured: rows 0.37, 0.75, 0.19, 0.24, mean 0.39; a row
+    moving by 0.1 moves the mean by 0.025); the result follows stage 2's convergence on
+    each member."""
     table = cross_table(trained["model"], truths(trained["dm"]))
     ratios = []
     for i in range(K):

@@ -1,4 +1,4 @@
-"""Dependencies inside nrt point one way (README "Layout").
+"""Dependencies inside nrt point one way (docs/extending.md, "Layout").
 
 Every module of the package is parsed with :mod:`ast` (nothing is imported), and each of its
 ``import nrt...`` statements, at module level, inside functions and under
