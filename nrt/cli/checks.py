@@ -15,6 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
+from nrt.cli.config_errors import value_text
 from nrt.errors import ConfigError
 
 ZERO_ALLOWED = ("light_degree", "sky_env_directions", "sky_phase_directions", "photo_twins")
@@ -128,7 +129,7 @@ def _check_option(cfg: DictConfig, key: str) -> None:
     what, valid = OPTIONS[key]
     value = OmegaConf.select(cfg, key, default=_ABSENT)
     if value is not _ABSENT and not valid(value):
-        raise ConfigError(f"{key}={_text(value)}: must be {what}. Fix the override, or "
+        raise ConfigError(f"{key}={value_text(value)}: must be {what}. Fix the override, or "
                           "leave the key to its default (`--cfg job` prints the config).")
 
 
@@ -159,8 +160,8 @@ def check_objectives(cfg: DictConfig) -> dict[str, type]:
         key = f"losses.objectives.{name}"
         target = entry.get("_target_") if isinstance(entry, Mapping) else None
         if not isinstance(target, str):
-            raise ConfigError(f"{key}={_text(entry)}: an objective is a config with `_target_: "
-                              "<module>.<Class>` (a subclass of nrt.losses.objective."
+            raise ConfigError(f"{key}={value_text(entry)}: an objective is a config with "
+                              "`_target_: <module>.<Class>` (a subclass of nrt.losses.objective."
                               "Objective) and `_partial_: true` (conf/losses/<stage>.yaml).")
         try:
             unit = get_object(target)
@@ -315,20 +316,9 @@ def _default(key: str, choices: Mapping[str, str], depth: int = 0):
     return None
 
 
-def _text(value) -> str:
-    """``value`` as an override writes it (``null``, ``{a: 1}``, ``[4, 8]``)."""
-    if value is None:
-        return "null"
-    if isinstance(value, Mapping):
-        return "{" + ", ".join(f"{k}: {_text(v)}" for k, v in value.items()) + "}"
-    if isinstance(value, list | tuple):
-        return "[" + ", ".join(_text(v) for v in value) + "]"
-    return str(value)
-
-
 def _shape_error(key: str, value, admits: set[str], default, group: bool) -> ConfigError:
     wanted = " or ".join(s for s in SHAPES if s in admits)
-    text = f"{key}={_text(value)}: must be {wanted}, not {_shape(value)}."
+    text = f"{key}={value_text(value)}: must be {wanted}, not {_shape(value)}."
     if group:
         text += (f" It is the config group {key.replace('.', '/')}: choose an option with "
                  f"{key.replace('.', '/')}=<name> (conf/{key.replace('.', '/')}/).")
@@ -340,7 +330,7 @@ def _shape_error(key: str, value, admits: set[str], default, group: bool) -> Con
             how = f"set them one at a time ({key}.{entries[0]}=<value>)"
         text += f" Its entries are {', '.join(entries)}: {how}."
     elif default is not None:
-        text += f" The default is {key}={_text(default)}."
+        text += f" The default is {key}={value_text(default)}."
     elif SHAPES[1] in admits and _shape(value) == SHAPES[2]:
         text += f" For one entry, give a list of one: {key}=[{value}]."
     return ConfigError(text + " `--cfg job` prints the composed config.")

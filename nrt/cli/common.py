@@ -37,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nrt import run_dirs
 from nrt.cli.config_errors import config_mistake
+from nrt.cli.schema import check_schema_keys
 from nrt.errors import NrtError
 from nrt.files import check_name, check_output_folder, write_failure
 
@@ -69,6 +70,8 @@ def tune_allocator() -> bool:
 
 
 def register_resolvers() -> None:
+    """Register the OmegaConf resolvers that conf/ uses (its schemas are stored in Hydra's
+    ConfigStore when this module imports :mod:`nrt.cli.schema`)."""
     if not OmegaConf.has_resolver("nrt_pid"):
         OmegaConf.register_new_resolver("nrt_pid", lambda: os.getpid())
     if not OmegaConf.has_resolver("nrt_run_dir"):
@@ -139,11 +142,13 @@ def run_app(task: Callable[[DictConfig], object], config_name: str,
         _set_env(FULL_ERROR, user_full_error)
         try:
             try:
-                # every interpolation resolves, or the mistake names its key, and every
-                # scalar option holds a value a run can use, before the task
+                # every interpolation resolves, or the mistake names its key, typed settings
+                # hold only their schema's keys, and every scalar option holds a value a run
+                # can use, before the task
                 OmegaConf.to_container(cfg, resolve=True)
-                from nrt.cli.checks import check_options  # checks reads CONFIG_DIR from here
+                from nrt.cli.checks import check_options  # it imports CONFIG_DIR from here
 
+                check_schema_keys(cfg)
                 check_options(cfg)
                 result = task(cfg)
             except Exception as exc:

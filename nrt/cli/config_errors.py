@@ -3,7 +3,8 @@
 Hydra and OmegaConf report a mistake on the command line or in the config tree with their
 own exceptions: an unknown key or group option, an override they cannot parse, a key
 deleted that is not there, an interpolation that names no key, a ``_target_`` that cannot
-be imported or called with the keys its config holds. :func:`config_mistake` turns each
+be imported or called with the keys its config holds, a value of the wrong type or a
+misspelt key under a typed setting (:mod:`nrt.cli.schema`). :func:`config_mistake` turns each
 into a :class:`~nrt.errors.ConfigError` that names the key and the fix, which the commands
 print as ``nrt: error: ...`` with exit status 2 (:func:`nrt.cli.common.run_app`). Any
 other exception is left alone: a bug keeps its traceback.
@@ -15,6 +16,7 @@ import difflib
 import re
 import sys
 import types
+from collections.abc import Mapping
 
 from hydra.errors import (
     ConfigCompositionException,
@@ -22,15 +24,30 @@ from hydra.errors import (
     MissingConfigException,
     OverrideParseException,
 )
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import (
     ConfigAttributeError,
     ConfigKeyError,
+    ConfigTypeError,
     GrammarParseError,
     InterpolationResolutionError,
     MissingMandatoryValue,
+    ValidationError,
 )
 
+from nrt.cli.schema import expected, field_names, field_of, is_schema, unknown_key_error
 from nrt.errors import ConfigError, NrtError
+
+
+def value_text(value) -> str:
+    """``value`` as an override writes it (``null``, ``{a: 1}``, ``[4, 8]``)."""
+    if value is None:
+        return "null"
+    if isinstance(value, Mapping):
+        return "{" + ", ".join(f"{k}: {value_text(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(value_text(v) for v in value) + "]"
+    return str(value)
 
 
 def _paragraph(text: str) -> str:
@@ -57,9 +74,32 @@ def _close(name: str, choices) -> str:
     return f" (did you mean '{match[0]}'?)" if match else ""
 
 
-def _unknown_key(exc: ConfigKeyError | ConfigAttributeError, command: str) -> ConfigError:
+def _config_file(exc: BaseException) -> str | None:
+    """The config file that Hydra was merging when ``exc`` happened (``conf/<name>.yaml``),
+    from its ``In '<name>': ...`` message; None for an override."""
+    found = re.match(r"In '([^']+)'", str(exc))
+    return f"conf/{found.group(1)}.yaml" if found else None
+
+
+def _fix(exc: BaseException | None, what: str) -> str:
+    """``Fix <what> in the config file`` Hydra was merging, else ``Fix the override``."""
+    where = _config_file(exc) if exc is not None else None
+    return f"Fix {what} in {where}" if where else "Fix the override"
+
+
+def _unknown_key(exc: ConfigKeyError | ConfigAttributeError, command: str,
+                 composing: BaseException | None = None) -> ConfigError:
     key = exc.full_key or exc.key
     parent = exc.parent_node
+    schema = OmegaConf.get_type(parent) if isinstance(parent, DictConfig) else None
+    if is_schema(schema) and str(exc.key) not in field_names(schema):
+        found = re.match(r"Could not override '([^']+)'", str(composing or ""))
+        override = found.group(1) if found else "the list"
+        owner = str(key).rsplit(".", 1)[0] if "." in str(key) else f"an entry of {override}"
+        shown = _given(str(key)) or _given(override) or str(key)
+        return unknown_key_error(owner, str(exc.key), schema, shown,
+                                 f"{_fix(composing, 'the spelling')} (`{command} --cfg job` "
+                                 "prints every key).")
     options = [] if parent is None or not hasattr(parent, "keys") else list(parent.keys())
     if "/" in str(key):  # group/option syntax for a group this composition does not have
         return _no_group(str(key), command)
@@ -148,6 +188,49 @@ def _raised_by_nrt(exc: BaseException) -> NrtError | None:
         isinstance(exc, InterpolationResolutionError) else None
 
 
+def _wrong_type(exc: ValidationError, command: str, composing: BaseException | None
+                ) -> ConfigError:
+    """A value that the schema of its key (:mod:`nrt.cli.schema`) does not admit: the
+    override (or the key an interpolation reads it from), what the key takes and means,
+    and the fix."""
+    hint, doc = field_of(exc.parent_node, exc.key)
+    key, value = str(exc.full_key or exc.key), value_text(exc.value)
+    want = (expected(hint) if hint is not None else "of its schema's type") + \
+        (f" ({doc[:1].lower()}{doc[1:].rstrip('.')})" if doc else "")
+    override = re.match(r"Error merging override (.+)", str(composing or ""))
+    link = _read_from(exc) if isinstance(exc, InterpolationResolutionError) else None
+    if link is not None:
+        text = f"{_given(link) or f'{link}={value}'}: must be {want}, as {key} reads it"
+    elif override is not None:
+        given = override.group(1).strip()
+        named = given.split("=", 1)[0].lstrip("+~")
+        text = f"{given}: must be {want}" if named == key else \
+            f"{given}: {key} must be {want}, not {value}"
+    else:
+        text = f"{key}={value}: must be {want}"
+    return ConfigError(f"{text}. {_fix(composing, 'it')}; `{command} --cfg job` prints the "
+                       "composed config.")
+
+
+def _read_from(exc: ValidationError) -> str | None:
+    """The key that the failing node's interpolation ``${key}`` names, if it is one."""
+    parent = exc.parent_node
+    node = parent._get_node(exc.key) if isinstance(parent, DictConfig) else None
+    raw = node._value() if node is not None else None
+    found = re.fullmatch(r"\$\{([\w.]+)\}", raw) if isinstance(raw, str) else None
+    return found.group(1) if found else None
+
+
+def _removed(exc: ConfigTypeError, command: str) -> ConfigError:
+    """``~key`` of a key that its schema requires."""
+    parent, name = str(exc.full_key).rsplit(".", 1)
+    schema = OmegaConf.get_type(exc.parent_node)
+    return ConfigError(
+        f"~{exc.full_key}: {parent} takes {schema.what}, {', '.join(field_names(schema))}; "
+        f"{name} missing, it is incomplete. Set {exc.full_key}=<value> instead of removing it "
+        f"(`{command} --cfg job` prints the composed config).")
+
+
 def config_mistake(exc: BaseException, command: str) -> NrtError | None:
     """``exc`` as the user's config mistake (a :class:`ConfigError` naming the key and the
     fix; a component's own :class:`NrtError` unwrapped from Hydra's instantiation error),
@@ -165,9 +248,17 @@ def config_mistake(exc: BaseException, command: str) -> NrtError | None:
         return _bad_override(exc, command)
     if isinstance(exc, MissingConfigException):
         return _missing_option(exc, command)
+    if isinstance(exc, ValidationError):  # a typed key reading a value of another type
+        return _wrong_type(exc, command, None)
     if isinstance(exc, ConfigCompositionException):
-        if isinstance(exc.__cause__, ConfigKeyError | ConfigAttributeError):
-            return _unknown_key(exc.__cause__, command)
+        cause = exc.__cause__ or exc.__context__  # a config file's mistake comes as context
+        if isinstance(cause, ConfigKeyError | ConfigAttributeError):
+            return _unknown_key(cause, command, exc)
+        if isinstance(cause, ValidationError):
+            return _wrong_type(cause, command, exc)
+        if isinstance(cause, ConfigTypeError) and "deletion" in str(cause) and \
+                isinstance(cause.parent_node, DictConfig):
+            return _removed(cause, command)
         no_group = re.match(r"Could not override '([^']+)'\. No match in the defaults list",
                             str(exc))
         if no_group:
