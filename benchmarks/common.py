@@ -11,9 +11,11 @@ import time
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import CONFIG_DIR, register_resolvers
+from nrt.data.render import dataset_name
+from nrt.run_dirs import LAST_CKPT, latest_run_with_checkpoint
 
 SCENES = {
     "default": [],
@@ -72,21 +74,30 @@ def train(stage: str, out: Path, preset: str, overrides: list[str],
     return run, wall
 
 
-def newest_checkpoint(scene: str) -> Path | None:
-    """The last checkpoint of the newest EA run of ``scene`` under :func:`output_dir`."""
-    runs = sorted((output_dir() / scene / "ea").glob("*/checkpoints/last.ckpt"),
-                  key=lambda p: p.stat().st_mtime)
-    return runs[-1].resolve() if runs else None
+def scene_dataset(preset: str, overrides: list[str]) -> str:
+    """The name of the dataset folder (in :func:`output_dir`'s cache) that ``nrt-train
+    preset=<preset> <overrides>`` trains on."""
+    scene = compose_train([f"preset={preset}", *overrides]).scene
+    return dataset_name(OmegaConf.to_container(scene, resolve=True), output_dir() / "datasets")
+
+
+def newest_checkpoint(scene: str, dataset: str | None = None) -> Path | None:
+    """The last checkpoint of the newest EA run of ``scene`` under :func:`output_dir`
+    (among those trained on the dataset folder named ``dataset``, when given)."""
+    run = latest_run_with_checkpoint(output_dir() / scene / "ea", dataset)
+    return (run / LAST_CKPT).resolve() if run is not None else None
 
 
 def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None) -> Path:
     """The EA checkpoint of the scene named ``name`` (its EA runs under :func:`output_dir`):
-    the newest one, else a new stage-1 run's on the scene of ``overrides`` (default: the
-    benchmark scene ``name``'s, :data:`SCENES`; another photo seed needs its own name)."""
-    found = newest_checkpoint(name)
+    the newest one trained on the photos of ``preset`` and ``overrides`` (default: the
+    benchmark scene ``name``'s, :data:`SCENES`; another photo seed needs its own name),
+    else a new stage-1 run's on them."""
+    overrides = list(SCENES[name] if overrides is None else overrides)
+    found = newest_checkpoint(name, scene_dataset(preset, overrides))
     if found is not None:
         return found
-    run = train("ea", output_dir(), preset, SCENES[name] if overrides is None else overrides)[0]
+    run = train("ea", output_dir(), preset, overrides)[0]
     return run / "checkpoints" / "last.ckpt"
 
 

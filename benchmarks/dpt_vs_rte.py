@@ -24,7 +24,14 @@ from pathlib import Path
 
 import yaml
 
-from benchmarks.common import newest_checkpoint, output_dir, run_cli, series, train
+from benchmarks.common import (
+    newest_checkpoint,
+    output_dir,
+    run_cli,
+    scene_dataset,
+    series,
+    train,
+)
 
 PAPER = {"DRT (paper)": (0.87, 4.06, 6.88, 43.3), "ours (paper)": (1.33, 1.66, 0.46, 30.5)}
 MANY_STEPS = 1_000_000  # the budget stops the run
@@ -112,7 +119,7 @@ def main() -> None:
     args.scene = args.scene or scene
     args.ea_ckpt = args.ea_ckpt or ea_ckpt
     if args.ea_ckpt is None:
-        found = newest_checkpoint(args.scene)
+        found = newest_checkpoint(args.scene, scene_dataset(args.preset, [f"scene={args.scene}"]))
         if found is None:
             parser.error(f"no EA checkpoint of scene '{args.scene}' under {output_dir()}: run "
                          f"`nrt-train stage=ea scene={args.scene}` first or pass --ea-ckpt.")

@@ -24,7 +24,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from benchmarks.common import SCENES, newest_checkpoint, output_dir, series, train
+from benchmarks.common import SCENES, ea_checkpoint, output_dir, series, train
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
@@ -44,9 +44,7 @@ def main() -> None:
     rows = []
     for name in args.scenes.split(","):
         scene = [*SCENES[name], *args.data]
-        ckpt = given.get(name) or newest_checkpoint(name)
-        if ckpt is None:
-            ckpt = train("ea", output_dir(), args.preset, scene)[0] / "checkpoints" / "last.ckpt"
+        ckpt = given.get(name) or ea_checkpoint(name, args.preset, scene)
         run, _ = train("rte", args.out, args.preset,
                        [*scene, f"init.ea_ckpt={ckpt}", *args.overrides])
         mse = {k: series(run, f"val/mse_{k}_x100") for k in PROPERTIES}

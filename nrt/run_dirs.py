@@ -52,10 +52,21 @@ def new_run_dir(base: str | Path, key: str = "paths.output_dir") -> str:
     return path
 
 
-def latest_run_with_checkpoint(base: str | Path) -> Path | None:
-    """The run folder under ``base`` whose ``checkpoints/last.ckpt`` is newest."""
+def latest_run_with_checkpoint(base: str | Path, dataset: str | None = None) -> Path | None:
+    """The run folder under ``base`` whose ``checkpoints/last.ckpt`` is newest; with
+    ``dataset`` (a dataset folder's name, :func:`run_dataset`) only among the runs that
+    trained on that dataset."""
     runs = [p.parent.parent for p in Path(base).glob(f"*/{LAST_CKPT}")]
+    if dataset is not None:
+        runs = [r for r in runs if run_dataset(r) == dataset]
     return max(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime, default=None)
+
+
+def run_dataset(run_dir: str | Path) -> str | None:
+    """The name of the dataset folder a run trained on (``<scene>-<hash>`` for a rendered
+    scene, as its ``run.json`` records it); None where it records none (a family)."""
+    folder = read_run_info(run_dir).get("dataset_dir")
+    return Path(folder).name if folder else None
 
 
 def run_dir(base: str, resume) -> str:

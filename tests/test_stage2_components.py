@@ -15,6 +15,7 @@ from torch import nn
 from nrt.errors import ConfigError, DatasetError, NrtError
 from nrt.losses.context import Illumination
 from nrt.modules.fields.sh_light_field import SHGridLightField
+from nrt.run_dirs import write_run_info
 from nrt.stages import uncollided as uncollided_module
 from nrt.stages.coupling import COUPLING, AdjointCoupling, coupling_settings
 from nrt.stages.sky_lights import SkyLights
@@ -160,3 +161,24 @@ def test_the_ea_checkpoint_is_the_given_one_else_the_newest_run(tmp_path: Path):
     given = tmp_path / "s" / "ea" / "run2" / "checkpoints" / "last.ckpt"
     assert resolve(ea_ckpt=str(given)) == str(given.resolve())
     assert resolve_ea_checkpoint({"source": "none"}, "s", "rte", tmp_path) is None
+
+
+def test_the_newest_ea_run_is_looked_up_among_runs_on_the_same_photos(tmp_path: Path):
+    """An EA run trained on another dataset (another preset or photo realisation) is never
+    picked silently: the newest run on the stage's own dataset is, and with none on it the
+    lookup is refused naming both datasets and the fix."""
+    for seconds, run, dataset in ((2, "tiny_run", "s-aaaa"), (1, "cpu_run", "s-bbbb")):
+        folder = tmp_path / "s" / "ea" / run
+        (folder / "checkpoints").mkdir(parents=True)
+        (folder / "checkpoints" / "last.ckpt").write_bytes(b"")
+        os.utime(folder / "checkpoints" / "last.ckpt", (seconds, seconds))
+        write_run_info(folder, dataset_dir=str(tmp_path / "datasets" / dataset))
+
+    def resolve(dataset):
+        return resolve_ea_checkpoint({"source": "ea"}, "s", "rte", tmp_path, None, dataset)
+
+    assert resolve(None).endswith("tiny_run/checkpoints/last.ckpt")  # no dataset: the newest
+    assert resolve("s-bbbb").endswith("cpu_run/checkpoints/last.ckpt")
+    with pytest.raises(NrtError, match="trained on other photos") as error:
+        resolve("s-cccc")
+    assert "s-aaaa" in str(error.value) and "init.ea_ckpt=" in str(error.value)

@@ -56,15 +56,19 @@ def resume_checkpoint(cfg: DictConfig, run_dir: Path) -> str | None:
 
 def resolve_ea_checkpoint(cfg: DictConfig, recorded: str | None = None) -> str | None:
     """The EA checkpoint a stage starts from (:func:`nrt.stages.start.resolve_ea_checkpoint`:
-    ``init.ea_ckpt``, else ``recorded`` by a resumed run, else the scene's newest EA run), set
-    into ``cfg.init.ea_ckpt`` as an absolute path; None for a stage that reads none."""
+    ``init.ea_ckpt``, else ``recorded`` by a resumed run, else the scene's newest EA run on
+    the same dataset), set into ``cfg.init.ea_ckpt`` as an absolute path; None for a stage
+    that reads none."""
+    from nrt.data.render import dataset_name
     from nrt.stages.start import resolve_ea_checkpoint as resolve
 
     density = OmegaConf.select(cfg, "model.density")
     if density is None:
         return None
+    scene = OmegaConf.to_container(cfg.scene, resolve=True)
     path = resolve(OmegaConf.to_container(density, resolve=True), cfg.scene.name,
-                   cfg.stage.name, cfg.paths.output_dir, recorded)
+                   cfg.stage.name, cfg.paths.output_dir, recorded,
+                   dataset_name(scene, cfg.paths.data_dir))
     if path is not None:
         cfg.init.ea_ckpt = path
         log.info("Stage %s starts from EA checkpoint %s", cfg.stage.name, path)

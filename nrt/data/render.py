@@ -178,6 +178,17 @@ def ensure_rendered(spec: dict, data_root: str | Path, variant: str = "auto",
     return render_dataset(spec, folder, variant=variant, progress=progress)
 
 
+def dataset_name(scene_cfg: Mapping, data_root: str | Path) -> str | None:
+    """The name of the dataset folder :func:`ensure_dataset` gives ``scene_cfg``, without
+    rendering: ``scene.path``'s own name, else the cache folder's ``<name>-<spec hash>``;
+    None for a family of scenes."""
+    if scene_cfg.get("family") is not None:
+        return None
+    if scene_cfg.get("path"):
+        return Path(str(scene_cfg["path"])).expanduser().resolve().name
+    return dataset_folder(resolve_scene(scene_cfg), data_root).name
+
+
 def ensure_dataset(scene_cfg: Mapping, data_root: str | Path, variant: str = "auto",
                    progress: bool = True) -> Path:
     """The dataset folder of a scene config: ``scene.path`` as given, else the cached

@@ -18,7 +18,7 @@ import torch
 
 from nrt.errors import ConfigError, DatasetError, NrtError
 from nrt.physics.volume import sample_grid
-from nrt.run_dirs import LAST_CKPT, latest_run_with_checkpoint
+from nrt.run_dirs import LAST_CKPT, latest_run_with_checkpoint, run_dataset
 from nrt.stages.checkpoints import check_checkpoint_file
 from nrt.stages.ea import load_ea_field
 
@@ -61,13 +61,16 @@ def needs_ea_checkpoint(density: Mapping) -> bool:
 
 
 def resolve_ea_checkpoint(density: Mapping, scene: str, stage: str, output_dir: str | Path,
-                          recorded: str | None = None) -> str | None:
+                          recorded: str | None = None,
+                          dataset: str | None = None) -> str | None:
     """The EA checkpoint whose density a stage starts from, as an absolute path; None for a
     start that reads none (:func:`needs_ea_checkpoint`).
 
     ``density["ea_ckpt"]`` (``init.ea_ckpt``) when given; else ``recorded`` (the one a resumed
     run started from); else the newest EA run of ``scene`` under ``output_dir`` that saved a
-    checkpoint. Errors name the command that trains one."""
+    checkpoint, among those trained on ``dataset`` (the name of the stage's own dataset
+    folder, when known): an EA run of another preset or photo realisation is never picked
+    silently. Errors name the command that trains one."""
     if not needs_ea_checkpoint(density):
         return None
     if density.get("ea_ckpt"):
@@ -77,12 +80,18 @@ def resolve_ea_checkpoint(density: Mapping, scene: str, stage: str, output_dir: 
         path = Path(recorded)
     else:
         base = Path(output_dir) / scene / "ea"
-        run = latest_run_with_checkpoint(base)
+        run = latest_run_with_checkpoint(base, dataset)
         if run is None:
+            other = latest_run_with_checkpoint(base)
+            found = (f"the EA runs under '{base}' trained on other photos (the newest, "
+                     f"'{other}', on '{run_dataset(other)}'; this run's are '{dataset}': "
+                     "another preset or photo realisation)" if other is not None
+                     else f"no EA run under '{base}' saved {LAST_CKPT}")
             raise NrtError(f"stage={stage} starts from the EA density of scene '{scene}', but "
-                           f"no EA run under '{base}' saved {LAST_CKPT}. Run `nrt-train "
-                           f"stage=ea scene={scene}` first, pass init.ea_ckpt=<path/to/"
-                           "last.ckpt>, or use init=none for the single-stage ablation.")
+                           f"{found}. Run `nrt-train stage=ea scene={scene}` with this run's "
+                           "preset and scene overrides first, pass init.ea_ckpt=<path/to/"
+                           "last.ckpt> to start from a run of your choice, or use init=none "
+                           "for the single-stage ablation.")
         path = run / LAST_CKPT
     return str(path.resolve())
 
