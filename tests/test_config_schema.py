@@ -3,7 +3,8 @@
 ``init`` or ``model.density`` is refused while the config is composed, with a one-paragraph
 ``nrt: error:`` naming the key, what was given, what the key takes and the fix, exit
 status 2 and nothing written; values a type cannot judge (a negative rate) are left to the
-component."""
+component. A method named by ``method=<name>`` (conf/method) composes as the stage, mode and
+experiment it stands for."""
 
 from __future__ import annotations
 
@@ -192,3 +193,41 @@ def test_schema_mistakes_end_in_one_paragraph_and_status_2(tmp_path: Path, overr
                           text=True, timeout=300)
     assert refusal(proc.returncode, proc.stderr).startswith(needle), proc.stderr[-2000:]
     assert list(out.iterdir()) == [] and not data.exists()
+
+
+# ------------------------------------------------------------------------------ methods
+METHODS = {  # conf/method/<name>.yaml -> the command line it stands for
+    "ea": ("stage=ea",),
+    "rte": ("stage=rte",),
+    "rte_paper": ("stage=rte", "experiment=rte_paper"),
+    "dpt": ("stage=dpt",),
+    "forward": ("stage=forward",),
+    "forward_paper": ("stage=forward", "experiment=rte_paper"),
+    "generative_ea": ("stage=ea", "mode=generative", "scene=family"),
+    "generative_rte": ("stage=rte", "mode=generative", "scene=family"),
+}
+
+
+def test_every_method_is_listed():
+    assert sorted(p.stem for p in (CONFIG_DIR / "method").glob("*.yaml")) == sorted(METHODS)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_a_method_composes_as_the_command_line_it_names(method):
+    by_name = compose_config("train", ["preset=tiny", f"method={method}"])
+    spelt = compose_config("train", ["preset=tiny", *METHODS[method]])
+    assert OmegaConf.to_container(by_name) == OmegaConf.to_container(spelt)
+
+
+@pytest.mark.parametrize(("with_method", "spelt"), [
+    (("method=rte_paper", "stage=forward"), ("stage=forward", "experiment=rte_paper")),
+    (("method=rte_paper", "experiment=ea_tensorboard_and_csv"),
+     ("stage=rte", "experiment=rte_paper", "logger=[tensorboard,csv]")),
+    (("method=rte", "experiment=accuracy_vs_time"), ("experiment=accuracy_vs_time",)),
+])
+def test_groups_on_the_command_line_and_recipes_combine_with_a_method(with_method, spelt):
+    """A group named on the command line wins over the method's choice, and the experiment
+    group stays free for recipes."""
+    by_name = compose_config("train", ["preset=tiny", *with_method])
+    assert OmegaConf.to_container(by_name) == \
+        OmegaConf.to_container(compose_config("train", ["preset=tiny", *spelt]))

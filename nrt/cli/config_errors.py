@@ -129,7 +129,7 @@ def _missing_option(exc: MissingConfigException, command: str) -> ConfigError:
                            f"--config-name, or reinstall nrt from its source checkout.")
     group, _, option = missing.rpartition("/")
     why = "" if _given(group) else (
-        f" No override chose it: a config you picked (a stage or an experiment) names "
+        f" No override chose it: a config you picked (a stage, a method or an experiment) names "
         f"{group}={option} in its defaults, so that combination does not exist (e.g. "
         f"experiment=rte_paper goes with stage=rte or stage=forward)."
     )
