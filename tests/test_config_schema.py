@@ -93,7 +93,7 @@ MISTAKES = [  # (overrides, what the message must say)
     (("stage=rte", "init=oracle", "init.truth_share=half"),
      "init.truth_share=half: must be a number (the truth's share"),
     (("stage=dpt", "init=grids", "init.grids=[a.npz]"),
-     "init.grids=[a.npz]: must be a string or null (path of a property-grid file"),
+     "init.grids=[a.npz]: must be a string or null (path of a property-grid .npz file"),
     (("stage=forward", "model.density.source=[ea]"),
      "model.density.source=[ea]: must be a string"),
 ]

@@ -39,7 +39,7 @@ from nrt.cli.schema import expected, field_names, field_of, is_schema, unknown_k
 from nrt.errors import ConfigError, NrtError
 
 
-def value_text(value) -> str:
+def value_text(value: object) -> str:
     """``value`` as an override writes it (``null``, ``{a: 1}``, ``[4, 8]``)."""
     if value is None:
         return "null"

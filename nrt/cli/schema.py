@@ -48,9 +48,9 @@ class Effects:
 
     what: ClassVar[str] = "the scene's effects"
     phase: str = MISSING
-    """Phase function: isotropic, hg (one shared g) or varying_hg (a g field)."""
+    """Phase function: isotropic, hg with one shared g, or varying_hg with a g field."""
     chromatic: bool = MISSING
-    """True: RGB extinction; false: one grey sigma_t (equal in R, G, B) with an RGB albedo."""
+    """True: RGB extinction; false: one grey sigma_t, equal in R, G and B, with an RGB albedo."""
     max_scattering_order: int = MISSING
     """Scattering orders rendered in the photos: -1 all, 0 attenuation only, 1 single, ..."""
     emitters: list[Emitter] | None = MISSING
@@ -119,9 +119,9 @@ class SplitRates:
 
     what: ClassVar[str] = "one learning rate per part"
     light: float = MISSING
-    """Rate of the scattered-light field (SH coefficients in units of radiance_scale)."""
+    """Rate of the scattered-light field, whose SH coefficients are in units of radiance_scale."""
     medium: float = MISSING
-    """Rate of the medium's modulation (extinction exponents and albedo logits)."""
+    """Rate of the medium's modulation: its extinction exponents and albedo logits."""
 
 
 @dataclass
@@ -167,11 +167,11 @@ class Start:
 
     what: ClassVar[str] = "the density start"
     source: str = MISSING
-    """ea (an EA run), none, oracle (the true extinction), grids (stage=dpt) or ground_truth."""
+    """ea: an EA run; none; oracle: the true extinction; grids: stage=dpt only; ground_truth."""
     ea_ckpt: str | None = MISSING
     """Path of the EA checkpoint to start from; null: the scene's newest EA run."""
     train: bool = MISSING
-    """True: the EA density is fine-tuned with the stage (model.lr.density); false: frozen."""
+    """True: the EA density is fine-tuned with the stage at model.lr.density; false: frozen."""
 
 
 @dataclass
@@ -179,7 +179,7 @@ class GridsStart(Start):
     """A start from property grids (``init=grids``, stage=dpt only)."""
 
     grids: str | None = MISSING
-    """Path of a property-grid file (.npz: sigma_a, sigma_s, g), e.g. a run's medium_grids.npz."""
+    """Path of a property-grid .npz file with sigma_a, sigma_s and g (a run's medium_grids.npz)."""
 
 
 @dataclass
@@ -258,7 +258,6 @@ def check_schema_keys(node: DictConfig | ListConfig, key: str = "") -> None:
     for path, child in children:
         if isinstance(child, DictConfig | ListConfig):
             check_schema_keys(child, path)
-
 
 
 def unknown_key_error(parent: str, name: str, schema: type, shown: str, fix: str
