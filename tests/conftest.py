@@ -23,6 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from nrt.cli.common import CONFIG_DIR, register_resolvers
 from nrt.data.render import ensure_dataset
 
+ROOT = Path(__file__).resolve().parent.parent
+"""The repository's root, which holds ``nrt/``, ``benchmarks/`` and ``conf/``."""
+
 
 def compose_config(config_name: str = "dataset", overrides: list[str] | tuple = ()) -> DictConfig:
     """``conf/<config_name>.yaml`` with ``overrides``, composed as the CLI composes it."""
