@@ -7,8 +7,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from benchmarks.dpt_vs_rte import reused_start
 from tests.conftest import ROOT
+
+pytestmark = pytest.mark.e2e
 
 
 def test_a_reused_run_lends_its_scene_and_ea_checkpoint(tmp_path):

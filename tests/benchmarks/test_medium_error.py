@@ -7,12 +7,15 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 import torch
 
 from benchmarks.medium_error import depth_from_outside, error_row, gaussian_blur
 from nrt.data.grids import save_property_grids
 from nrt.metrics import property_mse
 from tests.conftest import ROOT
+
+pytestmark = pytest.mark.unit
 
 
 def test_error_row_matches_the_logged_metric_and_its_bins_partition_the_error() -> None:

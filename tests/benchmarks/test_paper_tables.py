@@ -27,6 +27,8 @@ from benchmarks.paper_tables import (
 from nrt.data.spec import resolve_scene
 from tests.conftest import ROOT, compose_config
 
+pytestmark = pytest.mark.integration
+
 SETS = load_sets()
 
 

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+pytestmark = pytest.mark.e2e
+
 # A render of a few pixels, so that the first (rendering) call stays quick.
 SMALL = ("scene.cameras.num_train=2", "scene.cameras.num_test=1", "scene.cameras.width=8",
          "scene.cameras.height=8", "scene.spp=4", "scene.medium.resolution=8")

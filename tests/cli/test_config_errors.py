@@ -19,6 +19,8 @@ from nrt.errors import ConfigError
 from nrt.run_dirs import LAST_CKPT, SWEEP_FILE, earlier_job
 from tests.conftest import compose_config, train_command
 
+pytestmark = pytest.mark.e2e
+
 MISTAKES = [  # (command, overrides, what the message must say)
     ("train", ("foo=1",), "foo=1: the config has no key 'foo'"),
     ("train", ("model.nonexistent=3",), "model.nonexistent=3: the config has no key"),

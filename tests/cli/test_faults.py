@@ -23,6 +23,8 @@ from nrt.errors import ConfigError, SceneError, WriteError
 from nrt.files import TEMP_MARK, atomic_write, check_name, check_output_folder
 from tests.conftest import ROOT, compose_config, only_run_dir, refusal, run_train, train_command
 
+pytestmark = pytest.mark.e2e
+
 FAST_RENDER = ("preset=tiny", "scene.cameras.num_train=2", "scene.cameras.num_test=1",
                "scene.cameras.width=8", "scene.cameras.height=8", "scene.spp=4",
                "scene.medium.resolution=8", "render.progress=false")

@@ -21,6 +21,8 @@ from nrt.data.sky import sky_map
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import DatasetError, SceneError
 
+pytestmark = pytest.mark.integration
+
 SPLIT_SIZES = {"train": 16, "test": 4}
 """Views per split of the tiny scene; every view is rendered under each of its three skies."""
 SKIES = ["sky0", "sky1", "sky2"]

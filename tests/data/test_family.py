@@ -20,6 +20,8 @@ from nrt.errors import DatasetError, SceneError
 from tests.cli.test_cli_data import SMALL, assert_refused_before_rendering, file_times, nrt_data
 from tests.conftest import compose_config
 
+pytestmark = pytest.mark.e2e
+
 K = 4  # the tiny preset's budget.family.members
 MISTAKES = {"family.members": "scene.family.members=0",
             "family.heldout_sky": "scene.family.heldout_sky=null"}

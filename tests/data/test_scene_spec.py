@@ -14,6 +14,8 @@ from nrt.data.render import camera_rig
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import SceneError
 
+pytestmark = pytest.mark.unit
+
 
 def sigma_t(element: dict) -> np.ndarray:
     return np.asarray(element["sigma_a"]) + np.asarray(element["sigma_s"])

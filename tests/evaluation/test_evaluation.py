@@ -31,6 +31,8 @@ from nrt.metrics import ssim
 from nrt.weights import LPIPS_FILES, weights_dir
 from tests.conftest import read_csv_metrics, run_train, values
 
+pytestmark = pytest.mark.e2e
+
 NRT_EVAL = [sys.executable, "-m", "nrt.cli.eval"]
 NRT_REPORT = [sys.executable, "-m", "nrt.cli.report"]
 

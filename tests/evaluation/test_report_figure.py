@@ -22,6 +22,8 @@ from nrt.evaluation.report_figure import NO_TRUTH, VIEW_PX, caption, report_figu
 from nrt.evaluation.slices import compare_sources, comparison_figure, write_png
 from nrt.physics.tonemap import log_tonemap
 
+pytestmark = pytest.mark.unit
+
 N = 16
 BLOBS = {"z": ((8, 3, 12), (3, 12)),   # cell (z, y, x) -> (row, column) in its slice image
          "y": ((2, 8, 5), (2, 5)),     # slice across y: rows z, columns x

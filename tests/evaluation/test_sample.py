@@ -40,6 +40,8 @@ from nrt.evaluation.sample import (
 from nrt.weights import FID_FILE, weights_dir
 from tests.conftest import GENERATIVE_FAMILY, SMALL_FAMILY, compose_config
 
+pytestmark = pytest.mark.integration
+
 SCENE = ("preset=tiny", "scene=family", *SMALL_FAMILY)
 """The session's test family (conftest ``family_dir``): the tiny preset's K = 4 members."""
 HAVE_FID = (weights_dir() / FID_FILE).is_file()

@@ -12,6 +12,8 @@ from nrt.losses.extinction_tv import EPS, ExtinctionTV, total_variation
 from nrt.losses.objective import WeightSchedule
 from nrt.physics.volume import cell_centres
 
+pytestmark = pytest.mark.unit
+
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
 

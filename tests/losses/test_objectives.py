@@ -31,6 +31,8 @@ from nrt.losses.transport import TransportObjective
 from nrt.losses.vre import VREObjective
 from tests.conftest import GENERATIVE_FAMILY, compose_config
 
+pytestmark = pytest.mark.unit
+
 PAPER = "experiment=rte_paper"
 SPLIT_UNITS = {"photo": PhotoObjective, "transport": TransportObjective,
                "extinction_prior": ExtinctionPrior}

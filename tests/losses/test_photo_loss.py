@@ -15,6 +15,8 @@ from nrt.data.dataset import load_dataset
 from nrt.losses.photo import photo_loss
 from tests.conftest import compose_config
 
+pytestmark = pytest.mark.unit
+
 PIXELS = 200_000
 
 

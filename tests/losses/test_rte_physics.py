@@ -50,6 +50,8 @@ from nrt.physics.phase import (
     sample_phase,
 )
 
+pytestmark = pytest.mark.unit
+
 CUBE = torch.tensor([[-1.0] * 3, [1.0] * 3])
 SLAB = torch.tensor([[-2.0, -0.5, -1.0], [1.0, 0.5, 3.0]])
 """A non-cubic box (extents 3, 1, 4) with an off-centre origin: it catches code that

@@ -40,6 +40,8 @@ from nrt.physics.volume import cell_centres, ray_box_intersect
 from tests.mc_stats import compare, footprint_average
 from tests.mitsuba.test_mitsuba_physics import SEEDS, check, make_spec, render_pair, smooth_sky
 
+pytestmark = pytest.mark.unit
+
 BOX = torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=torch.float64)
 
 

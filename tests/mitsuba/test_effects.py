@@ -7,6 +7,8 @@ from nrt.mitsuba.render import ViewRenderer
 from nrt.mitsuba.scene import mitsuba_properties, scene_dict
 from nrt.mitsuba.variant import select_variant
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def mi():

@@ -40,6 +40,8 @@ from nrt.physics.phase import hg_phase
 from nrt.physics.volume import optical_depth, ray_box_intersect, sample_grid, transmittance
 from tests.mc_stats import compare, compare_two, footprint_average
 
+pytestmark = pytest.mark.integration
+
 SEEDS = (1, 2)
 """The two independent renders of every Monte Carlo comparison."""
 

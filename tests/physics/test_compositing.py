@@ -2,9 +2,12 @@
 
 import math
 
+import pytest
 import torch
 
 from nrt.physics.compositing import alpha_composite, stratified_samples
+
+pytestmark = pytest.mark.unit
 
 
 def test_homogeneous_slab_matches_closed_form():

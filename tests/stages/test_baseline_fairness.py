@@ -28,6 +28,8 @@ from nrt.physics.volume import cell_centres
 from nrt.stages.dpt import DPTModule
 from tests.conftest import ROOT, compose_config
 
+pytestmark = pytest.mark.integration
+
 EFFECTS = {"phase": "hg", "chromatic": True, "max_scattering_order": -1, "emitters": []}
 
 

@@ -22,6 +22,8 @@ from nrt.stages.paper_rte import PaperRTEStage
 from nrt.stages.rte import RTEStage
 from tests.conftest import compose_config
 
+pytestmark = pytest.mark.integration
+
 FORMULATIONS = {"split": (), "paper": ("experiment=rte_paper",)}
 """Stage 2's formulations: the default (split) stage and the paper's."""
 

@@ -34,6 +34,8 @@ from nrt.stages.dpt import DPTModule
 from nrt.stages.ea import load_ea_field
 from tests.conftest import only_run_dir, read_csv_metrics, run_train, values
 
+pytestmark = pytest.mark.e2e
+
 STEPS = 60  # budget.dpt.steps of preset tiny: 4^3 cells, 8^3 from step 24, 16^3 from step 36
 RUN_ARGS = ("trainer.log_every_n_steps=1",  # every step's loss, for the window means
             "budget.val_every=30")          # held-out views at steps 30 and 60

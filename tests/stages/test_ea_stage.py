@@ -28,6 +28,8 @@ from tests.conftest import (
 )
 from tests.finite_training import fit
 
+pytestmark = pytest.mark.e2e
+
 
 @pytest.mark.slow
 def test_tiny_ea_trains_via_cli_and_beats_background(tiny_ea_run):

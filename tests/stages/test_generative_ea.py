@@ -40,6 +40,8 @@ from tests.conftest import (
     run_train,
 )
 
+pytestmark = pytest.mark.e2e
+
 K = 4  # the tiny preset's budget.family.members
 FAMILY, SMALL = GENERATIVE_FAMILY, SMALL_FAMILY
 SHORT = ("budget.ea.steps=40", "budget.val_every=20", "budget.val_views=2",

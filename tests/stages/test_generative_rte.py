@@ -45,6 +45,8 @@ from tests.stages.test_generative_ea import SHORT as EA_SHORT
 from tests.stages.test_generative_ea import K, cli_family_run
 from tests.stages.test_generative_ea import train as train_ea
 
+pytestmark = pytest.mark.e2e
+
 STAGE2 = ("stage=rte", *GENERATIVE_FAMILY, *SMALL_FAMILY)
 SHORT = ("budget.rte.steps=24", "budget.val_every=12", "budget.val_views=1",
          "budget.checkpoint_every=24", "budget.rte.uncollided_directions=16")

@@ -26,6 +26,8 @@ from tests.conftest import (
 )
 from tests.finite_training import fit
 
+pytestmark = pytest.mark.e2e
+
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 PAPER = "experiment=rte_paper"
 

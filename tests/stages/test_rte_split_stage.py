@@ -29,6 +29,8 @@ from tests.stages.test_rte_paper_stage import (
     trains_finite,
 )
 
+pytestmark = pytest.mark.e2e
+
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 
 FORWARD_PSNR_MIN = 33.5

@@ -21,6 +21,8 @@ from nrt.stages.sky_lights import SkyLights
 from nrt.stages.start import DensityStart, needs_ea_checkpoint, resolve_ea_checkpoint
 from nrt.stages.uncollided import UncollidedCache
 
+pytestmark = pytest.mark.unit
+
 BOX = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
 
 

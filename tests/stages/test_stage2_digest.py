@@ -28,6 +28,8 @@ import torch
 
 from tests.conftest import only_run_dir, run_train, single_scene_ea_checkpoint
 
+pytestmark = pytest.mark.e2e
+
 STEPS = 120
 OVERRIDES = (f"budget.rte.steps={STEPS}", "budget.val_every=60",
              "budget.checkpoint_every=60", "logger=tensorboard")

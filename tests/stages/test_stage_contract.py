@@ -16,6 +16,8 @@ from nrt.cli.common import CONFIG_DIR
 from nrt.stages.stage import Stage
 from tests.conftest import compose_config
 
+pytestmark = pytest.mark.integration
+
 STAGES = {  # a medium (property grids)? g scored (the default scene's phase is hg)?
     ("ea",): (False, True),
     ("ea", "mode=generative", "scene=family"): (False, True),

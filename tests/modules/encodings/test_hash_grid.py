@@ -3,9 +3,12 @@ gradients against finite differences."""
 
 import math
 
+import pytest
 import torch
 
 from nrt.modules.encodings.hash_grid import PRIMES, HashGrid
+
+pytestmark = pytest.mark.unit
 
 
 def reference_encoding(grid: HashGrid, x: torch.Tensor) -> torch.Tensor:

@@ -58,6 +58,8 @@ from tests.mitsuba.test_mitsuba_physics import (
     single_scattering_case,
 )
 
+pytestmark = pytest.mark.unit
+
 F64 = torch.float64
 
 
