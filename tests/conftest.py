@@ -1,5 +1,7 @@
 """Shared fixtures: configs composed from the real conf/ tree, and the ``tiny`` dataset of
-the default scene, rendered once per test session and reused by every test that reads it."""
+the default scene, rendered once per test session and reused by every test that reads it;
+and the check of the tier markers (``unit``, ``integration``, ``e2e``; ``gpu`` skips without
+CUDA)."""
 
 from __future__ import annotations
 
@@ -23,12 +25,42 @@ from omegaconf import DictConfig, OmegaConf
 from nrt.cli.common import CONFIG_DIR, register_resolvers
 from nrt.data.render import ensure_dataset
 
+ROOT = Path(__file__).resolve().parent.parent
+"""The repository's root, which holds ``nrt/``, ``benchmarks/`` and ``conf/``."""
+
 
 def compose_config(config_name: str = "dataset", overrides: list[str] | tuple = ()) -> DictConfig:
     """``conf/<config_name>.yaml`` with ``overrides``, composed as the CLI composes it."""
     register_resolvers()
     with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose(config_name, overrides=list(overrides))
+
+
+TIERS = ("unit", "integration", "e2e")
+"""The tier markers (pyproject.toml); a module sets its tests' one tier with ``pytestmark``."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Refuses a test without exactly one tier marker, and skips ``gpu`` tests where torch
+    sees no CUDA device."""
+    wrong = []
+    for item in items:
+        tiers = {m.name for m in item.iter_markers() if m.name in TIERS}
+        if len(tiers) != 1:
+            wrong.append(f"{item.nodeid}: {sorted(tiers) or 'none'}")
+    if wrong:
+        raise pytest.UsageError(
+            f"a test needs exactly one tier marker of {', '.join(TIERS)} "
+            "(pytestmark in its module); found:\n" + "\n".join(wrong)
+        )
+    gpu = [item for item in items if item.get_closest_marker("gpu")]
+    if gpu:
+        import torch
+
+        if not torch.cuda.is_available():
+            skip = pytest.mark.skip(reason="needs CUDA, and torch sees no CUDA device here")
+            for item in gpu:
+                item.add_marker(skip)
 
 
 _scenes: dict[tuple[str, ...], dict] = {}

@@ -4,6 +4,9 @@ Every module of the package is parsed with :mod:`ast` (nothing is imported), and
 ``import nrt...`` statements, at module level, inside functions and under
 ``TYPE_CHECKING`` alike, must name a module of the same layer or a lower one. A new
 module outside every layer fails too, so that it gets a place in the order.
+
+The tests mirror the package: each folder under ``tests/`` is named after a package of nrt
+(``tests/benchmarks/`` after ``benchmarks/``) and is a package of ``tests``.
 """
 
 from __future__ import annotations
@@ -13,7 +16,10 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "nrt"
+pytestmark = pytest.mark.unit
+
+TESTS = Path(__file__).resolve().parent
+PACKAGE = TESTS.parent / "nrt"
 
 LAYERS: list[tuple[str, ...]] = [
     ("nrt.errors", "nrt.files"),
@@ -108,3 +114,21 @@ def test_the_check_sees_a_backward_import(tmp_path: Path):
                       "    import nrt.callbacks\n")
     assert nrt_imports(source) == [(2, "nrt.evaluation.rerender"), (3, "nrt.callbacks")]
     assert layer_of("nrt.evaluation.rerender") > layer_of("nrt.stages.dpt")
+
+
+def mirrors_the_code(folder: Path) -> bool:
+    """``tests/<folder>/`` is named after ``nrt/<folder>/``, or ``tests/benchmarks/`` after
+    ``benchmarks/``."""
+    if folder.parts[0] == "benchmarks":
+        return (TESTS.parent / folder).is_dir()
+    return (PACKAGE / folder).is_dir()
+
+
+def test_test_folders_mirror_the_package():
+    """Every folder of tests is named after a package of the code, and every one, ``tests/``
+    included, has an ``__init__.py``."""
+    folders = sorted({p.parent.relative_to(TESTS) for p in TESTS.rglob("*.py")} - {Path(".")})
+    stray = [str(f) for f in folders if not mirrors_the_code(f)]
+    assert not stray, f"test folders named after no package of nrt: {stray}"
+    loose = [str(f) for f in [Path("."), *folders] if not (TESTS / f / "__init__.py").is_file()]
+    assert not loose, f"test folders without __init__.py: {loose}"

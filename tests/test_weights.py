@@ -32,6 +32,8 @@ from nrt import weights
 from nrt.errors import NrtError
 from nrt.metrics import FID, LPIPS, frechet_distance
 
+pytestmark = pytest.mark.unit
+
 NRT_WEIGHTS = [sys.executable, "-m", "nrt.cli.weights"]
 HAVE_WEIGHTS = all((weights.weights_dir() / rel).is_file()
                    for rel in [*weights.LPIPS_FILES.values(), weights.FID_FILE])

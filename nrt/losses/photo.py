@@ -14,7 +14,7 @@ a pixel, a pull toward blur at the pixel's scale that the data never asked for. 
 errors (Azinovic et al. 2019's estimator, nrt/losses/unbiased.py, with both rays
 differentiated): unbiased for the square of the mean tonemapped estimate's error. With the
 linear tonemap that is the box-filtered pixel's error exactly; with ``log`` the tonemap of
-a mean is not the mean of the tonemap, a second-order remainder (tests/test_photo_loss.py
+a mean is not the mean of the tonemap, a second-order remainder (tests/losses/test_photo_loss.py
 measures it at 2 % of the single ray's pull). Noise shared by both rays (the scattered
 light's cached uncollided part, the light field itself) is not removed.
 """

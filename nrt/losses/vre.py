@@ -28,11 +28,11 @@ def vre_loss(light: LightField, medium: Medium, origins: torch.Tensor, dirs: tor
     ``E_t[(E[I | t] - P)^2] = (E[I] - P)^2 + Var_t(E[I | t])`` and the gradient for its
     gradient: the directions' variance is gone, the positions' is not (nor a covariance of
     the positions in the gradient). Measured on a medium varying 40x across the box
-    (tests/test_vre.py): the positions' variance is 7% of one render's variance (the bias
-    of a plain square) with 1 stratum per ray, 4% with 4, 0.7% with 16 and 0.3% (within
-    noise) with 32; the presets use 16-32. Independent positions too (the medium and the
-    lights' first scattering evaluated twice) made this objective 1.3-1.4x (cpu preset)
-    and 1.9-2.1x (tiny) slower, measured on 2 shared cores. ``E[I]`` itself is the
+    (tests/modules/renderers/test_vre.py): the positions' variance is 7% of one render's
+    variance (the bias of a plain square) with 1 stratum per ray, 4% with 4, 0.7% with 16 and
+    0.3% (within noise) with 32; the presets use 16-32. Independent positions too (the medium
+    and the lights' first scattering evaluated twice) made this objective 1.3-1.4x (cpu
+    preset) and 1.9-2.1x (tiny) slower, measured on 2 shared cores. ``E[I]`` itself is the
     alpha-composited quadrature of the VRE, whose error shrinks with ``n_samples``."""
     _, _, hit = ray_box_intersect(origins, dirs, medium.bbox)
     if not hit.any():
