@@ -17,7 +17,6 @@ from pathlib import Path
 
 import hydra
 import pytest
-from conftest import compose_config, refusal
 from hydra.errors import InstantiationException
 from omegaconf import MISSING, OmegaConf
 
@@ -25,9 +24,12 @@ from nrt.cli.common import CONFIG_DIR
 from nrt.cli.config_errors import config_mistake
 from nrt.cli.schema import SCHEMAS, check_schema_keys, field_doc, field_names
 from nrt.errors import ConfigError
+from tests.conftest import compose_config, refusal
 
 TYPED = ("scene", "losses", "model", "init")
 """The roots that hold typed settings (resolved here as nrt-train resolves the config)."""
+
+pytestmark = pytest.mark.integration
 
 
 def resolve_typed(cfg) -> None:
