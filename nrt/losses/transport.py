@@ -18,6 +18,7 @@ The medium gets no gradient here; it learns from the photos (and, with
 from __future__ import annotations
 
 import torch
+from torch.profiler import record_function
 
 from nrt.losses.context import StepContext
 from nrt.losses.objective import Objective, WeightSchedule, scene_mean
@@ -76,8 +77,9 @@ def unrolled_inscatter(light: SHGridLightField, medium, x: torch.Tensor, w: torc
 def uniform_samples(n: int, bbox: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``n`` points (n, 3) uniform in the box ``bbox`` and as many travel directions (n, 3)
     uniform on the sphere, drawn in that order."""
-    points = uniform_box_points(n, bbox)
-    return points, sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
+    with record_function("nrt/ray_marching"):  # a profiler scope (benchmarks.profile_step)
+        points = uniform_box_points(n, bbox)
+        return points, sample_uniform_sphere(torch.rand(n, 2, device=bbox.device))
 
 
 class TransportObjective(Objective):

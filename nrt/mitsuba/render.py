@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+from torch.profiler import record_function
 
 from nrt.cameras import opengl_to_mitsuba
 
@@ -67,18 +68,24 @@ class ViewRenderer:
         (float32, flat; non-finite entries are left for the caller to handle)."""
         import drjit as dr
 
-        self.set_camera(c2w)
-        self.set_parameters(values, grad=True)
-        reference = self.mi.TensorXf(np.ascontiguousarray(ref))
-        img = dr.maximum(self.mi.render(self.scene, self.params, spp=int(spp), seed=int(seed)),
-                         0)
-        if kind == "l2_relative":
-            eps = 0.01 * float(np.mean(ref)) + 1e-8
-            loss = dr.mean(dr.square(img - reference) / dr.square(dr.detach(img) + eps),
-                           axis=None)
-        else:
-            diff = dr.log(1 + img) - dr.log(1 + reference)
-            loss = dr.mean(dr.abs(diff) if kind == "l1_log" else dr.square(diff), axis=None)
-        dr.backward(loss)
-        grads = {key: np.asarray(dr.grad(self.params[key]), np.float32) for key in values}
-        return float(np.asarray(loss).reshape(-1)[0]), grads
+        # profiler scopes (benchmarks.profile_step); Dr.Jit evaluates lazily, so a kernel
+        # may run in a later scope than the one that recorded it
+        with record_function("nrt/render"):
+            self.set_camera(c2w)
+            self.set_parameters(values, grad=True)
+            reference = self.mi.TensorXf(np.ascontiguousarray(ref))
+            img = dr.maximum(self.mi.render(self.scene, self.params, spp=int(spp),
+                                            seed=int(seed)), 0)
+        with record_function("nrt/image_loss"):
+            if kind == "l2_relative":
+                eps = 0.01 * float(np.mean(ref)) + 1e-8
+                loss = dr.mean(dr.square(img - reference) / dr.square(dr.detach(img) + eps),
+                               axis=None)
+            else:
+                diff = dr.log(1 + img) - dr.log(1 + reference)
+                loss = dr.mean(dr.abs(diff) if kind == "l1_log" else dr.square(diff), axis=None)
+        with record_function("nrt/render_backward"):
+            dr.backward(loss)
+            grads = {key: np.asarray(dr.grad(self.params[key]), np.float32) for key in values}
+        with record_function("nrt/image_loss"):
+            return float(np.asarray(loss).reshape(-1)[0]), grads

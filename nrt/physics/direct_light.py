@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from torch.profiler import record_function
 
 from nrt.physics.envmap import EnvironmentMap, texel_directions
 from nrt.physics.phase import hg_phase, isotropic_phase
@@ -122,9 +123,10 @@ def direct_inscatter(x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
 
     ``sigma_t`` maps points (..., 3) to extinction (..., C); ``g`` (...,) or None.
     """
-    total = torch.zeros_like(x)
-    for toward, power in direct_arrivals(x, lights, sigma_t, bbox, n_steps, jitter):
-        cos = -(toward * w).sum(-1)
-        phase = isotropic_phase(cos) if g is None else hg_phase(cos, g)
-        total = total + phase.unsqueeze(-1) * power
-    return total
+    with record_function("nrt/direct_light"):  # a profiler scope (benchmarks.profile_step)
+        total = torch.zeros_like(x)
+        for toward, power in direct_arrivals(x, lights, sigma_t, bbox, n_steps, jitter):
+            cos = -(toward * w).sum(-1)
+            phase = isotropic_phase(cos) if g is None else hg_phase(cos, g)
+            total = total + phase.unsqueeze(-1) * power
+        return total

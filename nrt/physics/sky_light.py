@@ -24,6 +24,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
+from torch.profiler import record_function
 
 from nrt.physics.direct_light import DirectLights, direct_arrivals
 from nrt.physics.envmap import EnvironmentDirectionSampler, EnvironmentMap
@@ -50,24 +51,26 @@ def sky_inscatter(x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None, sigm
     """MIS estimate of ``S_u(x, w)`` (..., 3) at points ``x`` for travel directions ``w``
     (..., 3) with ``n_env`` environment and ``n_phase`` phase samples per point; ``g``
     (...,) or None (isotropic)."""
-    lead = x.shape[:-1]
-    looks = []
-    if n_env:
-        looks.append(sampler.sample(x[..., 0].numel() * n_env).to(x).reshape(*lead, n_env, 3))
-    if n_phase:
-        xi = torch.rand(*lead, n_phase, 2, dtype=x.dtype, device=x.device)
-        g_k = None if g is None else g.detach().unsqueeze(-1).expand(*lead, n_phase)
-        looks.append(-sample_phase(w.unsqueeze(-2).expand(*lead, n_phase, 3), g_k, xi))
-    d = torch.cat(looks, -2).detach()
-    cos = -(d * w.unsqueeze(-2)).sum(-1)
-    if g is None:
-        phase = proposal = isotropic_phase(cos)
-    else:
-        g_k = g.unsqueeze(-1).expand(cos.shape)
-        phase, proposal = hg_phase(cos, g_k), hg_phase(cos, g_k.detach())
-    mixture = n_env * sampler.pdf(d) + n_phase * proposal  # balance heuristic, summed
-    radiance = shadowed_sky(x.unsqueeze(-2).expand_as(d), d, sigma_t, bbox, envmap, n_steps)
-    return ((phase / mixture.clamp_min(1e-20)).unsqueeze(-1) * radiance).sum(-2)
+    with record_function("nrt/sky_light"):  # a profiler scope (benchmarks.profile_step)
+        lead = x.shape[:-1]
+        looks = []
+        if n_env:
+            looks.append(sampler.sample(x[..., 0].numel() * n_env).to(x).reshape(
+                *lead, n_env, 3))
+        if n_phase:
+            xi = torch.rand(*lead, n_phase, 2, dtype=x.dtype, device=x.device)
+            g_k = None if g is None else g.detach().unsqueeze(-1).expand(*lead, n_phase)
+            looks.append(-sample_phase(w.unsqueeze(-2).expand(*lead, n_phase, 3), g_k, xi))
+        d = torch.cat(looks, -2).detach()
+        cos = -(d * w.unsqueeze(-2)).sum(-1)
+        if g is None:
+            phase = proposal = isotropic_phase(cos)
+        else:
+            g_k = g.unsqueeze(-1).expand(cos.shape)
+            phase, proposal = hg_phase(cos, g_k), hg_phase(cos, g_k.detach())
+        mixture = n_env * sampler.pdf(d) + n_phase * proposal  # balance heuristic, summed
+        radiance = shadowed_sky(x.unsqueeze(-2).expand_as(d), d, sigma_t, bbox, envmap, n_steps)
+        return ((phase / mixture.clamp_min(1e-20)).unsqueeze(-1) * radiance).sum(-2)
 
 
 @torch.no_grad()

@@ -12,6 +12,7 @@ from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
+from torch.profiler import record_function
 
 from nrt.physics.compositing import stratified_samples
 
@@ -48,8 +49,9 @@ def march_to_exit(points: torch.Tensor, dirs: torch.Tensor, bbox: torch.Tensor,
                   n_samples: int, jitter: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`march` from ``points`` (N, 3) inside the box along ``dirs`` to where each ray
     leaves ``bbox``."""
-    _, t_exit, _ = ray_box_intersect(points, dirs, bbox)
-    return march(points, dirs, torch.zeros_like(t_exit), t_exit, n_samples, jitter)
+    with record_function("nrt/ray_marching"):  # a profiler scope (benchmarks.profile_step)
+        _, t_exit, _ = ray_box_intersect(points, dirs, bbox)
+        return march(points, dirs, torch.zeros_like(t_exit), t_exit, n_samples, jitter)
 
 
 def cell_centres(resolution: int, bbox: torch.Tensor) -> torch.Tensor:
@@ -93,13 +95,14 @@ def optical_depth(
     ``sigma_t`` maps points (..., 3) to extinction (..., C); returns (..., C). Segments
     with ``t1 <= t0`` give 0.
     """
-    length = (t1 - t0).clamp_min(0.0)
-    offset = (torch.rand(*t0.shape, 1, dtype=origins.dtype, device=origins.device) if jitter
-              else 0.5)
-    frac = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + offset) \
-        / n_samples
-    t = t0.unsqueeze(-1) + length.unsqueeze(-1) * frac  # (..., S)
-    pts = origins.unsqueeze(-2) + t.unsqueeze(-1) * dirs.unsqueeze(-2)  # (..., S, 3)
+    with record_function("nrt/ray_marching"):
+        length = (t1 - t0).clamp_min(0.0)
+        offset = (torch.rand(*t0.shape, 1, dtype=origins.dtype, device=origins.device)
+                  if jitter else 0.5)
+        frac = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + offset) \
+            / n_samples
+        t = t0.unsqueeze(-1) + length.unsqueeze(-1) * frac  # (..., S)
+        pts = origins.unsqueeze(-2) + t.unsqueeze(-1) * dirs.unsqueeze(-2)  # (..., S, 3)
     return sigma_t(pts).mean(-2) * length.unsqueeze(-1)
 
 

@@ -15,6 +15,7 @@ import math
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -56,16 +57,19 @@ class HashGrid(nn.Module):
         return idx + self.offsets[level]
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        lead = x.shape[:-1]
-        x = x.reshape(-1, 3).clamp(0.0, 1.0)
-        out = []
-        for level, res in enumerate(self.resolutions):
-            pos = x * res
-            base = torch.floor(pos).clamp(max=res - 1)
-            frac = pos - base  # (P, 3)
-            vertices = base.long().unsqueeze(1) + self.corners  # (P, 8, 3)
-            rows = self.vertex_index(level, vertices)  # (P, 8)
-            feats = torch.index_select(self.table, 0, rows.reshape(-1)).view(-1, 8, self.features)
-            w = torch.where(self.corners.bool(), frac.unsqueeze(1), 1 - frac.unsqueeze(1)).prod(-1)
-            out.append((feats * w.unsqueeze(-1)).sum(1))
-        return torch.cat(out, -1).reshape(*lead, self.output_dim)
+        with record_function("nrt/hash_grid"):  # a profiler scope (benchmarks.profile_step)
+            lead = x.shape[:-1]
+            x = x.reshape(-1, 3).clamp(0.0, 1.0)
+            out = []
+            for level, res in enumerate(self.resolutions):
+                pos = x * res
+                base = torch.floor(pos).clamp(max=res - 1)
+                frac = pos - base  # (P, 3)
+                vertices = base.long().unsqueeze(1) + self.corners  # (P, 8, 3)
+                rows = self.vertex_index(level, vertices)  # (P, 8)
+                feats = torch.index_select(self.table, 0, rows.reshape(-1)).view(
+                    -1, 8, self.features)
+                w = torch.where(self.corners.bool(), frac.unsqueeze(1),
+                                1 - frac.unsqueeze(1)).prod(-1)
+                out.append((feats * w.unsqueeze(-1)).sum(1))
+            return torch.cat(out, -1).reshape(*lead, self.output_dim)

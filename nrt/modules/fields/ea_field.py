@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from nrt.errors import ConfigError
 from nrt.modules.encodings.activations import DENSITY_ACTIVATIONS
@@ -75,7 +76,8 @@ class EAField(nn.Module):
         elif latent is not None:
             raise ValueError("this EA field has no latent code (latent_dim=0); build it with "
                              "latent_dim > 0 to condition it on one.")
-        return self.density_net(encoded)
+        with record_function("nrt/mlp"):  # profiler scopes (benchmarks.profile_step)
+            return self.density_net(encoded)
 
     def density_of_encoding(self, encoded: torch.Tensor, latent: torch.Tensor | None = None
                             ) -> torch.Tensor:
@@ -87,14 +89,18 @@ class EAField(nn.Module):
         """Density ``rho_EA`` (...,) at world points ``x`` (..., 3); stage 2 calls this.
         ``latent`` (..., d_z), broadcastable against ``x``'s leading dimensions, is required
         exactly when the field is conditioned (``latent_dim > 0``)."""
-        return self.density_of_encoding(self.encode(x), latent)
+        with record_function("nrt/density_field"):
+            return self.density_of_encoding(self.encode(x), latent)
 
     def forward(self, x: torch.Tensor, d: torch.Tensor, latent: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """Density (...,) and colour (..., 3) at points ``x`` seen along view directions ``d``
         (``latent`` as in :meth:`density`)."""
-        h = self._features(self.encode(x), latent)
-        sigma = self.activation(h[..., 0] + self.density_bias)
-        view = sh_basis(d, SH_DEGREE) * self.sh_signs.to(d.dtype)
-        rgb = nn.functional.softplus(self.color_net(torch.cat((h[..., 1:], view), -1)))
-        return sigma, rgb
+        with record_function("nrt/density_field"):
+            h = self._features(self.encode(x), latent)
+            sigma = self.activation(h[..., 0] + self.density_bias)
+            view = sh_basis(d, SH_DEGREE) * self.sh_signs.to(d.dtype)
+            features = torch.cat((h[..., 1:], view), -1)
+            with record_function("nrt/mlp"):
+                colour = self.color_net(features)
+            return sigma, nn.functional.softplus(colour)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from nrt.modules.encodings.siren import Siren
 
@@ -36,14 +37,17 @@ class LightField(nn.Module):
         return torch.cat((unit, w), -1)
 
     def forward(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        return self.radiance_scale * torch.exp(self.net(self._inputs(x, w)).clamp(
-            max=LOG_RADIANCE_MAX))
+        with record_function("nrt/light_field"):  # a profiler scope (benchmarks.profile_step)
+            return self.radiance_scale * torch.exp(self.net(self._inputs(x, w)).clamp(
+                max=LOG_RADIANCE_MAX))
 
     def with_derivative(self, x: torch.Tensor, w: torch.Tensor
                         ) -> tuple[torch.Tensor, torch.Tensor]:
         """``L(x, w)`` and ``(w . grad_x) L(x, w)``, both (..., 3), in one forward-mode pass."""
-        inp = self._inputs(x, w)
-        dx = w.expand_as(inp[..., :3]) * (2 / (self.bbox[1] - self.bbox[0]))
-        y, dy = self.net.forward_with_tangent(inp, torch.cat((dx, torch.zeros_like(dx)), -1))
-        radiance = self.radiance_scale * torch.exp(y.clamp(max=LOG_RADIANCE_MAX))
-        return radiance, torch.where(y < LOG_RADIANCE_MAX, radiance * dy, torch.zeros_like(dy))
+        with record_function("nrt/light_field"):
+            inp = self._inputs(x, w)
+            dx = w.expand_as(inp[..., :3]) * (2 / (self.bbox[1] - self.bbox[0]))
+            y, dy = self.net.forward_with_tangent(inp, torch.cat((dx, torch.zeros_like(dx)), -1))
+            radiance = self.radiance_scale * torch.exp(y.clamp(max=LOG_RADIANCE_MAX))
+            return radiance, torch.where(y < LOG_RADIANCE_MAX, radiance * dy,
+                                         torch.zeros_like(dy))

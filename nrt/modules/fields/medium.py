@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from nrt.errors import ConfigError
 from nrt.physics.phase import G_MAX
@@ -150,8 +151,9 @@ class NeuralMedium(Medium):
         return self.density_field.density(x)
 
     def forward(self, x: torch.Tensor) -> MediumProperties:
-        unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
-        return self.heads(self.rho(x).unsqueeze(-1), self.modulation(unit) + self.offsets)
+        with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
+            unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
+            return self.heads(self.rho(x).unsqueeze(-1), self.modulation(unit) + self.offsets)
 
     def heads(self, rho: torch.Tensor, h: torch.Tensor) -> MediumProperties:
         """Properties from the density ``rho`` (..., 1) and the raw outputs ``h`` (..., n)
@@ -207,14 +209,15 @@ class GroundTruthMedium(Medium):
         self.bbox.copy_(bbox)
 
     def forward(self, x: torch.Tensor) -> MediumProperties:
-        v = sample_grid(self.stacked, x, self.bbox)
-        g = v[..., -1].clamp(-G_MAX, G_MAX) if self.phase != "none" else None
-        if self.channels == 1:
-            sigma_t, albedo = v[..., :1].clamp_min(0.0), v[..., 1:4].clamp(0.0, 1.0)
-            return MediumProperties(sigma_t * (1 - albedo), sigma_t * albedo, albedo, g,
-                                    extinction=sigma_t)
-        sigma_a, sigma_s = v[..., :3].clamp_min(0.0), v[..., 3:6].clamp_min(0.0)
-        return MediumProperties(sigma_a, sigma_s, _albedo(sigma_s, sigma_a + sigma_s), g)
+        with record_function("nrt/medium"):
+            v = sample_grid(self.stacked, x, self.bbox)
+            g = v[..., -1].clamp(-G_MAX, G_MAX) if self.phase != "none" else None
+            if self.channels == 1:
+                sigma_t, albedo = v[..., :1].clamp_min(0.0), v[..., 1:4].clamp(0.0, 1.0)
+                return MediumProperties(sigma_t * (1 - albedo), sigma_t * albedo, albedo, g,
+                                        extinction=sigma_t)
+            sigma_a, sigma_s = v[..., :3].clamp_min(0.0), v[..., 3:6].clamp_min(0.0)
+            return MediumProperties(sigma_a, sigma_s, _albedo(sigma_s, sigma_a + sigma_s), g)
 
 
 def _albedo(sigma_s: torch.Tensor, sigma_t: torch.Tensor) -> torch.Tensor:

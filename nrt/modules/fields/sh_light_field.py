@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from nrt.errors import ConfigError
 from nrt.modules.fields.latent_grid import LatentGridDecoder
@@ -69,19 +70,21 @@ class SHGrid:
 
     def __call__(self, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
         """Scattered radiance ``L_s(x, w)`` (..., 3) at points ``x`` along travel ``w``."""
-        return (self._lookup(self.coefficients, x) * sh_basis(w, self.degree).unsqueeze(-2)
-                ).sum(-1)
+        with record_function("nrt/light_field"):  # a profiler scope (benchmarks.profile_step)
+            return (self._lookup(self.coefficients, x) * sh_basis(w, self.degree).unsqueeze(-2)
+                    ).sum(-1)
 
     def inscatter(self, x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None,
                   with_uncollided: bool = False, trainable: bool = True) -> torch.Tensor:
         """``int f(w' . w) L(x, w') dw'`` (..., 3) of ``L_s`` (and of the cached uncollided
         light with ``with_uncollided``), exact for HG of ``g`` (...,) or isotropic (None).
         ``trainable=False`` keeps gradients from the coefficients (not from ``g``)."""
-        grid = self.coefficients if trainable else self.coefficients.detach()
-        if with_uncollided:
-            grid = grid + self.uncollided
-        basis = sh_basis(w, self.degree) * phase_band_factors(g, self.degree).to(w)
-        return (self._lookup(grid, x) * basis.unsqueeze(-2)).sum(-1)
+        with record_function("nrt/light_field"):
+            grid = self.coefficients if trainable else self.coefficients.detach()
+            if with_uncollided:
+                grid = grid + self.uncollided
+            basis = sh_basis(w, self.degree) * phase_band_factors(g, self.degree).to(w)
+            return (self._lookup(grid, x) * basis.unsqueeze(-2)).sum(-1)
 
     @torch.no_grad()
     def set_uncollided(self, coefficients: torch.Tensor, blend: float = 1.0) -> None:

@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 from functools import partial
 
 import torch
+from torch.profiler import record_function
 
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
 from nrt.modules.fields.latent_grid import LatentGridDecoder
@@ -52,20 +53,22 @@ class Voxels:
         return Voxels(self.stacked.detach(), self.channels, self.phase, g, self.bbox)
 
     def sigma_t(self, x: torch.Tensor) -> torch.Tensor:
-        return sample_grid(self.extinction, x, self.bbox)
+        with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
+            return sample_grid(self.extinction, x, self.bbox)
 
     def __call__(self, x: torch.Tensor) -> MediumProperties:
-        v = sample_grid(self.stacked, x, self.bbox)
-        c = self.channels
-        sigma_t, albedo = v[..., :c], v[..., c:c + 3]
-        if self.phase == "field":
-            g = v[..., c + 3]
-        elif self.phase == "shared":
-            g = self.g_shared.expand(x.shape[:-1])
-        else:
-            g = None
-        return MediumProperties(sigma_t * (1 - albedo), sigma_t * albedo, albedo, g,
-                                extinction=sigma_t if c == 1 else None)
+        with record_function("nrt/medium"):
+            v = sample_grid(self.stacked, x, self.bbox)
+            c = self.channels
+            sigma_t, albedo = v[..., :c], v[..., c:c + 3]
+            if self.phase == "field":
+                g = v[..., c + 3]
+            elif self.phase == "shared":
+                g = self.g_shared.expand(x.shape[:-1])
+            else:
+                g = None
+            return MediumProperties(sigma_t * (1 - albedo), sigma_t * albedo, albedo, g,
+                                    extinction=sigma_t if c == 1 else None)
 
 
 def extinction(medium) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -140,8 +143,9 @@ class VoxelMedium(NeuralMedium):
 
     def voxels(self) -> Voxels:
         """The properties on the density's cells (differentiable in the modulation)."""
-        r = self.density.shape[0]
-        return self.compose(self.density, resample_cells(self.modulation.values, r))
+        with record_function("nrt/medium"):
+            r = self.density.shape[0]
+            return self.compose(self.density, resample_cells(self.modulation.values, r))
 
     def compose(self, density: torch.Tensor, h: torch.Tensor) -> Voxels:
         """:class:`Voxels` of a density (R, R, R, 1) and the modulation's raw outputs on the
