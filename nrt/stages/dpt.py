@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.profiler import record_function
 
 from nrt.cameras import fov_x_deg
 from nrt.data.grids import (
@@ -218,26 +219,32 @@ class DPTModule(Stage):
         ``env`` (an index of :meth:`use_views`'s maps), built once. A learned g is read
         through the ``nrt_hg_grid`` phase (a one-cell grid for one shared g)."""
         if env not in self._renderers:
-            from nrt.mitsuba.render import ViewRenderer
-            from nrt.mitsuba.scene import scene_dict
-            from nrt.mitsuba.variant import select_variant
-
-            mi = select_variant("auto")
-            intr = self._frames.intrinsics
-            arrays = self.property_arrays()
-            effects = dict(self.effects)
-            if self.learns_g:
-                effects["phase"] = "varying_hg"
-                arrays["g"] = self.medium.values()["g"].detach().cpu().numpy()[..., 0]
-            spec = {"bbox": self.bbox.cpu().tolist(), "effects": effects}
-            renderer = ViewRenderer(mi, scene_dict(
-                mi, spec, arrays, self._envmaps[env], intr.width, intr.height,
-                fov_x_deg(intr, "The training cameras"), self.hparams.spp,
-                integrator="prbvolpath"))
-            self._keys = renderer.medium_keys(
-                {name: suffix for name, suffix in MITSUBA_KEYS.items() if name in self.grids()})
-            self._renderers[env] = renderer
+            with record_function("nrt/render_setup"):  # a profiler scope (profile_step)
+                self._renderers[env] = self._build_renderer(env)
         return self._renderers[env]
+
+    def _build_renderer(self, env: int):
+        """The Mitsuba scene of :meth:`renderer` under environment ``env``, newly built
+        (and the scene keys of the grids, :attr:`_keys`)."""
+        from nrt.mitsuba.render import ViewRenderer
+        from nrt.mitsuba.scene import scene_dict
+        from nrt.mitsuba.variant import select_variant
+
+        mi = select_variant("auto")
+        intr = self._frames.intrinsics
+        arrays = self.property_arrays()
+        effects = dict(self.effects)
+        if self.learns_g:
+            effects["phase"] = "varying_hg"
+            arrays["g"] = self.medium.values()["g"].detach().cpu().numpy()[..., 0]
+        spec = {"bbox": self.bbox.cpu().tolist(), "effects": effects}
+        renderer = ViewRenderer(mi, scene_dict(
+            mi, spec, arrays, self._envmaps[env], intr.width, intr.height,
+            fov_x_deg(intr, "The training cameras"), self.hparams.spp,
+            integrator="prbvolpath"))
+        self._keys = renderer.medium_keys(
+            {name: suffix for name, suffix in MITSUBA_KEYS.items() if name in self.grids()})
+        return renderer
 
     def _mitsuba_values(self, values: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
         """Arrays of :meth:`PathTracedGrids.values` as Mitsuba's parameters (scene key ->
@@ -308,10 +315,14 @@ class DPTModule(Stage):
             if views <= len(self._frames) else \
             torch.randint(len(self._frames), (views,), generator=gen).tolist()
         opt = self.optimizers()
-        value = self.image_loss(frames, seed=self.global_step * views)
-        opt.step()
-        self.lr_schedulers().step()
-        self.medium.clamp_()
+        # profiler scopes (benchmarks.profile_step): the torch side of the image loss (the
+        # grids' parametrisation and its backward), inside it Mitsuba's (nrt/mitsuba/render.py)
+        with record_function("nrt/parametrisation"):
+            value = self.image_loss(frames, seed=self.global_step * views)
+        with record_function("nrt/optimizer"):
+            opt.step()
+            self.lr_schedulers().step()
+            self.medium.clamp_()
         self.log("train/loss", value, prog_bar=True)
         self.log("time/step_render_s", time.perf_counter() - start)
         self.log("train/grid_resolution", float(res))

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch.profiler import record_function
 
 from nrt.errors import ConfigError, NrtError
 from nrt.files import atomic_write, writing
@@ -120,9 +121,16 @@ class EAModule(Stage):
                            latent=self.ray_latents(batch))
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        loss = self.photometric(self.render(batch, jitter=True), batch["rgb"])
+        with record_function("nrt/objective/photometric/forward"):  # benchmarks.profile_step
+            loss = self.photometric(self.render(batch, jitter=True), batch["rgb"])
         self.log("train/loss", loss, prog_bar=True)
         return loss
+
+    def backward(self, loss: torch.Tensor, *args, **kwargs) -> None:
+        """Lightning's backward of the step's loss, in the profiler scope
+        ``nrt/objective/photometric/backward`` (benchmarks.profile_step)."""
+        with record_function("nrt/objective/photometric/backward"):
+            super().backward(loss, *args, **kwargs)
 
     def validation_step(self, batch: dict, batch_idx: int) -> dict[str, torch.Tensor]:
         """Render one held-out view; the output carries ``member`` when the batch does."""

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import torch
+from torch.profiler import record_function
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import DatasetError, NrtError
@@ -75,14 +76,17 @@ class RadiativeTransferStage(Stage):
     def backward_objectives(self, batch: dict, context: StepContext) -> torch.Tensor:
         """Backpropagate each active objective (:meth:`active_weights`) on ``batch`` in the
         step's ``context`` times its weight, logging its value and seconds; returns the
-        weighted total (detached)."""
+        weighted total (detached). The loss and its backward run in the profiler scopes
+        ``nrt/objective/<name>/forward`` and ``.../backward`` (benchmarks.profile_step)."""
         total = torch.zeros((), device=self.device)
         for name, weight in self.active_weights().items():
             start = time.perf_counter()
-            loss = self.objectives[name].loss(batch, context)
-            self.manual_backward(weight * loss)
-            if self.device.type == "cuda":
-                torch.cuda.synchronize(self.device)
+            with record_function(f"nrt/objective/{name}/forward"):
+                loss = self.objectives[name].loss(batch, context)
+            with record_function(f"nrt/objective/{name}/backward"):
+                self.manual_backward(weight * loss)
+                if self.device.type == "cuda":
+                    torch.cuda.synchronize(self.device)
             self.log(f"time/step_{name}_s", time.perf_counter() - start)
             self.log(f"train/loss_{name}", loss.detach())
             total = total + weight * loss.detach()

@@ -45,6 +45,7 @@ from collections.abc import Callable, Mapping
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from nrt.errors import ConfigError
 from nrt.losses.context import StepContext
@@ -233,11 +234,12 @@ class RTEStage(RadiativeTransferStage):
         ``scenes`` in its medium (without gradient) when it is due
         (:class:`~nrt.stages.uncollided.UncollidedCache`), logging the seconds."""
         start = time.perf_counter()
-        if self.uncollided.due(self.global_step):
-            for medium, light in scenes:
-                self.uncollided.refresh(detached(medium), light,
-                                        self.sky_lights.illumination_of(light))
-            self.uncollided.fresh = True
+        with record_function("nrt/uncollided"):  # a profiler scope (benchmarks.profile_step)
+            if self.uncollided.due(self.global_step):
+                for medium, light in scenes:
+                    self.uncollided.refresh(detached(medium), light,
+                                            self.sky_lights.illumination_of(light))
+                self.uncollided.fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
@@ -255,8 +257,9 @@ class RTEStage(RadiativeTransferStage):
             self.adjoint_step(medium, grad)
         if self.learns_medium:
             self.log("train/medium_resolution", float(self.medium.resolution))
-        opt.step()
-        self.lr_schedulers().step()
+        with record_function("nrt/optimizer"):
+            opt.step()
+            self.lr_schedulers().step()
         return torch.as_tensor(total)
 
     def adjoint_step(self, medium, grad: torch.Tensor) -> None:
@@ -264,9 +267,10 @@ class RTEStage(RadiativeTransferStage):
         scattered light's coefficients (:meth:`AdjointCoupling.backward`), logged."""
         start = time.perf_counter()
         s = self.hparams.samples
-        loss = self.adjoint.backward(self.light, medium, self.medium.voxels, grad,
-                                     int(s["transport_points"]), int(s["transport_samples"]),
-                                     self.manual_backward)
+        with record_function("nrt/adjoint"):
+            loss = self.adjoint.backward(self.light, medium, self.medium.voxels, grad,
+                                         int(s["transport_points"]), int(s["transport_samples"]),
+                                         self.manual_backward)
         self.log("train/loss_adjoint", loss)
         self.log("time/step_adjoint_s", time.perf_counter() - start)
 

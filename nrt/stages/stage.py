@@ -43,6 +43,7 @@ from pathlib import Path
 
 import lightning as L
 import torch
+from torch.profiler import record_function
 
 from nrt.errors import ConfigError
 from nrt.metrics import psnr
@@ -133,6 +134,12 @@ class Stage(L.LightningModule):
     def more_baselines(self, batch: dict) -> dict[str, float]:
         """Further baselines of :meth:`view_baselines` (name -> PSNR in dB); none here."""
         return {}
+
+    def log(self, name: str, value, *args, **kwargs) -> None:
+        """Lightning's ``log``, in the profiler scope ``nrt/logging`` (benchmarks.profile_step
+        counts it as the framework's time)."""
+        with record_function("nrt/logging"):
+            super().log(name, value, *args, **kwargs)
 
     def datamodule(self):
         """The attached trainer's datamodule; None outside a trainer."""
