@@ -98,7 +98,7 @@ LPIPS_REFERENCE = {
     "vgg": (0.05332473, 0.19400226, 0.32967895, 0.06798265, 0.57444906),
 }
 """LPIPS (v0.1 linear layers) of the :func:`reference_pairs`, measured once with the
-verified weights (2026-11-23, torch 2.14.1, CPU). The same AlexNet weights gave LPIPS-alex
+verified weights (torch 2.14.1, CPU). The same AlexNet weights gave LPIPS-alex
 0.7237, 0.25716, 0.05079, 0.05205, 0.42532 on pyiqa's five calibration pairs, whose
 published values are 0.7237, 0.2572, 0.05079, 0.05205, 0.4253 (pyiqa's images are not
 shipped with nrt)."""

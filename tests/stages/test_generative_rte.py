@@ -277,14 +277,14 @@ def cross_table(model: GenerativeRTEModule, gts: list[dict]) -> torch.Tensor:
 def test_each_code_reconstructs_its_own_member_best(trained):
     """Member i's medium decoded from every code j, scored against member i's ground truth.
 
-    Measured at the preset (three runs, 2026-11-23; docs/generative.md): the own code was
+    Measured at the preset (three runs; docs/generative.md): the own code was
     the best of every row in two CLI runs (seeds 0 and 1, own/next-best 0.34-0.92) but of
     three rows only in this in-process run, whose member 0 came second to the code of
     member 2, its near twin (31.4 against 26.0; their true media differ by 52): the strict
     reading is not robust at this preset yet. Against the mean of the other codes the own
     code scored 0.24-0.69 of it in all three runs, while the EA start fails that for member
     1 (3.0: its density several times too dense). A change in the last bit of the
-    compositing's final transmittance (2026-11-23, reverted) gave member 1 106.6 against
+    compositing's final transmittance (tried, not kept) gave member 1 106.6 against
     the others' mean 132.4 (0.805): a single row's ratio moves by ~0.1 with float
     rounding, which differs between machines. The test asks every row for own < the
     others' mean ("better than another scene's", with the worst row measured 0.805) and the

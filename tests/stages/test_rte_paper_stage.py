@@ -34,7 +34,7 @@ PAPER = "experiment=rte_paper"
 
 FORWARD_PSNR_MIN = 30.5
 """Held-out PSNR (dB, log tonemap) that forward mode must reach on the tiny scene with
-g = 0.7 after its 300 steps. Measured over seeds 0-4 (2026-11-23): 31.59-32.16 dB (mean
+g = 0.7 after its 300 steps. Measured over seeds 0-4: 31.59-32.16 dB (mean
 31.88, sd 0.22), so the bound sits ~5 sd below the worst seed. The same runs with the
 ground truth's g flipped reach 20.0 dB and with albedo 1 (sigma_a folded into sigma_s)
 23.9 dB, 6.6-10.5 dB below the bound; the no-scattering prediction ``T E(v)`` is 22.6 dB.
@@ -69,7 +69,7 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     loss of every objective and the property MSEs from step 0, fits the held-out photos
     with its VRE image, and exports the medium in the ground truth's layout.
 
-    It does not yet improve the medium: over seeds 0-5 (2026-11-23) the end/start property
+    It does not yet improve the medium: over seeds 0-5 the end/start property
     MSE ratios were sigma_a 0.96-0.99, sigma_s 0.96-1.01, sigma_t 0.97-1.00, g 0.96-1.01,
     so the test only bounds drift (every ratio < 1.10) and leaves improvement to a later,
     stronger assertion. The held-out VRE PSNR was 34.35-34.72 dB (the no-scattering

@@ -44,7 +44,7 @@ def test_forward_mode_reproduces_the_photos(tmp_path, tiny_dataset):
     """Forward mode: the true medium, only the scattered light learns (transport objective,
     no photos). The photo objective's image of the held-out views must reproduce Mitsuba's
     photos to :data:`FORWARD_PSNR_MIN` dB and beat the no-scattering prediction ``T E(v)``
-    by > 6 dB. Measured (300 steps, seeds 0-2, 2026-11-23): 34.79-34.86 dB against 25.40
+    by > 6 dB. Measured (300 steps, seeds 0-2): 34.79-34.86 dB against 25.40
     dB for ``T E(v)``, 25.72 dB for the background alone and 26.8 dB for the first
     scattering without learned light (measured once, 4 test views), so the bound needs the
     scattered light, with a margin of ~20 times the seeds' spread (0.07 dB). The exit
@@ -67,11 +67,11 @@ def test_rte_after_ea_via_cli_improves_the_medium(tiny_ea_run, tiny_dataset):
     """``stage=ea`` then ``stage=rte`` through the CLI: stage 2 finds the EA checkpoint
     itself and says so, logs the time and loss of each objective and the property MSEs from
     step 0, and moves the medium toward the truth. Measured at the tiny preset (two
-    training skies, the extinction prior, 900 steps, stage-2 seeds 0-2 from one EA run,
-    2026-11-24): end/start MSE sigma_t 0.523-0.539 (18.70 -> 9.78-10.07), sigma_a
-    0.31-0.32, g 0.05-0.10, held-out PSNR 35.40-35.44 dB. The seeds spread by 0.016 in the
-    sigma_t ratio, so the bound 0.6 lies four spreads above the worst seed and under the
-    issue's two thirds (an improvement by at least a third). Without the prior the same
+    training skies, the extinction prior, 900 steps, stage-2 seeds 0-2 from one EA run):
+    end/start MSE sigma_t 0.523-0.539 (18.70 -> 9.78-10.07), sigma_a 0.31-0.32, g 0.05-0.10,
+    held-out PSNR 35.40-35.44 dB. The seeds spread by 0.016 in the sigma_t ratio, so the
+    bound 0.6 lies four spreads above the worst seed and under two thirds (the target: an
+    improvement by at least a third). Without the prior the same
     runs ended at 0.498-0.510, under one sky at 0.80-0.81 (docs/stage2.md, "Several skies",
     "Dense cores")."""
     out, ea = tiny_ea_run
