@@ -59,7 +59,7 @@ MIN_CROP = 16
 
 
 class LatentMediumModel(Protocol):
-    """What ``nrt-sample`` needs of a generative stage-2 module (the issue-15 contract):
+    """What ``nrt-sample`` needs of a generative stage-2 module:
     ``codes`` (K, d_z), one row per family member in the family's order, and the medium
     decoded from any code on ``resolution``^3 cells in the format of
     ``Stage.property_grids`` (CPU, no gradient)."""
