@@ -1,5 +1,5 @@
 """Shared fixtures: configs composed from the real conf/ tree, and the ``tiny`` dataset of
-the default scene, rendered once per test session and reused by every test that reads it;
+the default scene, rendered once per pytest run and reused by every test that reads it;
 and the check of the tier markers (``unit``, ``integration``, ``e2e``; ``gpu`` skips without
 CUDA)."""
 
