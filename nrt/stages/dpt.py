@@ -17,8 +17,10 @@ ratio tracking of the paper's baseline.
 - g: learned (``phase_g: null``), as stage 2 learns it; or fixed at ``phase_g``.
 - Each step renders ``views_per_step`` random training views, each under its own
   environment (one Mitsuba scene per environment of ``stage.environments``), at ``spp``
-  with gradients; the image loss (``loss``: ``l2_log``, the MSE after the log1p tonemap
-  as stage 1 and the evaluation compare images; ``l1_log``; ``l2_relative``) is taken in
+  with gradients (at ``spp_final`` once the grids reach their final resolution, when
+  given: cheap steps while the grids are coarse, a cleaner gradient on the finest); the
+  image loss (``loss``: ``l2_log``, the MSE after the log1p tonemap as stage 1 and the
+  evaluation compare images; ``l1_log``; ``l2_relative``) is taken in
   Dr.Jit (:meth:`nrt.mitsuba.render.ViewRenderer.image_loss`) and averaged over the views;
   ``dr.backward`` gives the gradients of the rendered arrays, which torch back-propagates
   through the parametrisation to the parameters (non-finite entries counted and zeroed),
@@ -84,7 +86,7 @@ def check_start(density: dict) -> None:
 
 
 def check_settings(loss: str, views_per_step: int, lr_drops, lr_drop_factor: float,
-                   extinction_prior: float) -> None:
+                   extinction_prior: float, spp: int, spp_final: int | None) -> None:
     """Refuse settings no run can use, naming the key."""
     if loss not in LOSSES:
         raise ConfigError(f"losses.image='{loss}': the baseline's image loss is one of "
@@ -92,6 +94,10 @@ def check_settings(loss: str, views_per_step: int, lr_drops, lr_drop_factor: flo
     if int(views_per_step) < 1:
         raise ConfigError(f"budget.dpt.views_per_step={views_per_step}: render at least one "
                           "view a step.")
+    for key, value in (("spp", spp), ("spp_final", spp_final)):
+        if value is not None and int(value) < 1:
+            raise ConfigError(f"budget.dpt.{key}={value}: at least one sample per pixel"
+                              + (" (null: spp's)." if key == "spp_final" else "."))
     if any(not 0 < f < 1 for f in lr_drops) or list(lr_drops) != sorted(lr_drops):
         raise ConfigError(f"losses.lr_drops={list(lr_drops)}: increasing fractions of the run "
                           "in (0, 1).")
@@ -105,7 +111,8 @@ class DPTModule(Stage):
     """Grids of sigma_t, albedo and g fitted by differentiable path tracing."""
 
     def __init__(self, effects: dict, density: dict, resolutions: list[int],
-                 upsample_at: list[float], spp: int = 8, val_spp: int = 32,
+                 upsample_at: list[float], spp: int = 8, spp_final: int | None = None,
+                 val_spp: int = 32,
                  lr: float = 0.02, lr_g_factor: float = 1.0, lr_final_factor: float = 0.1,
                  lr_drops: list[float] | tuple = (), lr_drop_factor: float = 0.5,
                  views_per_step: int = 1, loss: str = "l2_log",
@@ -120,7 +127,8 @@ class DPTModule(Stage):
         check_learning_rates(lr, "losses.lr")
         check_learning_rates(lr * lr_g_factor, "losses.lr_g_factor (times losses.lr)")
         check_start(density)
-        check_settings(loss, views_per_step, list(lr_drops), lr_drop_factor, extinction_prior)
+        check_settings(loss, views_per_step, list(lr_drops), lr_drop_factor, extinction_prior,
+                       spp, spp_final)
         phase = effects["phase"]
         g_kind = "none" if phase == "isotropic" else "fixed" if phase_g is not None else \
             "field" if phase == "varying_hg" else "shared"
@@ -266,8 +274,17 @@ class DPTModule(Stage):
         return resolution_at(self.progress(), self.hparams.resolutions,
                              self.hparams.upsample_at)
 
+    def training_spp(self) -> int:
+        """Samples per pixel of a training render now: ``spp_final`` (when given) once the
+        grids are at their final resolution, else ``spp``."""
+        final = self.hparams.get("spp_final")
+        if final is not None and self.medium.resolution == int(self.hparams.resolutions[-1]):
+            return int(final)
+        return int(self.hparams.spp)
+
     def image_loss(self, frames: int | list[int], seed: int) -> float:
-        """Render training views ``frames`` of the current grids with gradients (``spp``,
+        """Render training views ``frames`` of the current grids with gradients
+        (:meth:`training_spp`,
         Mitsuba's ``seed`` plus the view's position in the list), compare each with its
         photo (``loss``) and store the gradient of their mean, plus the extinction prior's,
         as the ``.grad`` of every grid (non-finite entries of Mitsuba's gradients counted
@@ -284,7 +301,7 @@ class DPTModule(Stage):
             arrays = arrays or self._mitsuba_values(values)
             value, view_grads = renderer.image_loss(
                 self._frames.c2w[frame].cpu().numpy(), self._frames.images[frame].cpu().numpy(),
-                arrays, int(self.hparams.spp), int(seed) + k, self.hparams.loss)
+                arrays, self.training_spp(), int(seed) + k, self.hparams.loss)
             total += value
             for key, grad in view_grads.items():
                 grads[key] = grads[key] + grad if key in grads else grad

@@ -237,6 +237,8 @@ def test_dpt_starts_from_property_grids(tmp_path, phase, chromatic):
     ({"source": "none"}, {}, "init=grids init.grids="),
     ({"source": "ea"}, {"loss": "l3"}, "losses.image='l3'"),
     ({"source": "ea"}, {"views_per_step": 0}, "views_per_step=0"),
+    ({"source": "ea"}, {"spp": 0}, "budget.dpt.spp=0"),
+    ({"source": "ea"}, {"spp_final": 0}, "budget.dpt.spp_final=0"),
     ({"source": "ea"}, {"lr_drops": [0.9, 0.5]}, "losses.lr_drops"),
     ({"source": "ea"}, {"lr_drop_factor": 0.0}, "lr_drop_factor"),
     ({"source": "ea"}, {"extinction_prior": -1.0}, "extinction_prior"),
@@ -250,6 +252,20 @@ def test_dpt_refuses_a_start_or_setting_it_cannot_use(density, settings, words):
     effects = {"phase": "hg", "chromatic": True, "max_scattering_order": -1, "emitters": []}
     with pytest.raises(NrtError, match=re.escape(words)):
         DPTModule(effects, density, [4], [], **settings)
+
+
+def test_dpt_training_spp_rises_on_the_final_grids():
+    """``spp_final`` takes over from ``spp`` once the grids reach their final resolution
+    (cheap steps while coarse); without it every step renders at ``spp``."""
+    effects = {"phase": "hg", "chromatic": True, "max_scattering_order": -1, "emitters": []}
+    module = DPTModule(effects, {"source": "ea", "ea_ckpt": None}, [4, 8], [0.5], spp=16,
+                       spp_final=32)
+    assert module.training_spp() == 16
+    module.medium.resize(8, None)
+    assert module.training_spp() == 32
+    plain = DPTModule(effects, {"source": "ea", "ea_ckpt": None}, [4, 8], [0.5], spp=16)
+    plain.medium.resize(8, None)
+    assert plain.training_spp() == 16
 
 
 def test_dpt_renders_each_view_under_its_own_environment():
