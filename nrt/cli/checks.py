@@ -27,6 +27,9 @@ ZERO_ALLOWED = ("light_degree", "sky_env_directions", "sky_phase_directions", "p
 """Counts of ``budget`` for which 0 is meaningful (SH band 0 only; one of the two MIS
 strategies left out; no photo ray with a twin); every other count must be at least 1."""
 
+OPTIONAL_COUNTS = ("val_views", "spp_final")
+"""Counts of ``budget`` that may be null (all held-out views; the training spp throughout)."""
+
 FRACTIONS = ("light_warmup",)
 """Shares of a run in ``budget``, in [0, 1)."""
 
@@ -66,7 +69,7 @@ def check_budget(cfg: DictConfig) -> None:
     for key, value in _leaves(budget, "budget"):
         name = key.rsplit(".", 1)[-1]
         if isinstance(value, bool) or name.endswith("upsample_at") or \
-                (name == "val_views" and value is None):
+                (name in OPTIONAL_COUNTS and value is None):
             continue
         if name in FRACTIONS:
             if not _is_number(value) or not 0 <= value < 1:
