@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from nrt.cli.checks import check_arguments
 from nrt.errors import ConfigError
 from nrt.run_dirs import LAST_CKPT, SWEEP_FILE, earlier_job
-from tests.conftest import compose_config, train_command
+from tests.conftest import cli_in_process, compose_config, train_command
 
 pytestmark = pytest.mark.e2e
 
@@ -35,6 +35,7 @@ MISTAKES = [  # (command, overrides, what the message must say)
      "model.lr.light: Interpolation key 'nope' not found"),
     ("train", ("stage=rte", "init=none", "+model.extra=1"), "unexpected keyword argument 'extra'"),
     ("data", ("scene.nope=1",), "scene.nope=1: the config has no key"),
+    ("train", ("stage=dpt", "budget.dpt.spp_final=0"), "budget.dpt.spp_final=0: must be a whole"),
     ("train", ("stage=rte", "model.lr=0.01"),
      "model.lr=0.01: must be a mapping, not a single value. Its entries are light, medium: "
      "set each entry: model.lr.light=0.01 model.lr.medium=0.01."),
@@ -43,28 +44,39 @@ MISTAKES = [  # (command, overrides, what the message must say)
 ]
 
 
-# Each case starts a Python process (~6 s on 2 cores): these few stay in the fast tier, the
-# rest (the same code paths with other keys) run in the slow tier.
-FAST_MISTAKES = {("foo=1",), ("stage=rte", "model.lr=0.01"), ("scene.nope=1",)}
-
-
-@pytest.mark.parametrize(("command", "overrides", "needle"), [
-    pytest.param(*m, marks=() if m[1] in FAST_MISTAKES else pytest.mark.slow) for m in MISTAKES
-], ids=[" ".join(m[1]) for m in MISTAKES])
+@pytest.mark.parametrize(("command", "overrides", "needle"), MISTAKES,
+                         ids=[" ".join(m[1]) for m in MISTAKES])
 def test_config_mistakes_end_in_one_paragraph_and_status_2(tmp_path, command, overrides,
                                                            needle):
+    """In the test's process (:func:`cli_in_process`); one case also as a command of its
+    own (:func:`test_a_config_mistake_in_a_real_process`)."""
     out = tmp_path / "out"
     out.mkdir()
-    cmd = [sys.executable, "-m", f"nrt.cli.{command}", "preset=tiny",
-           f"paths.data_dir={tmp_path / 'datasets'}", *overrides]
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    proc = subprocess.run(cmd, env={**env, "NRT_OUTPUT_DIR": str(out)}, capture_output=True,
-                          text=True, timeout=300)
+    proc = cli_in_process(command, "preset=tiny", f"paths.data_dir={tmp_path / 'datasets'}",
+                          *overrides, env={"NRT_OUTPUT_DIR": str(out)})
+    assert_one_paragraph(proc, needle)
+    assert list(out.iterdir()) == [] and not (tmp_path / "datasets").exists()
+
+
+def assert_one_paragraph(proc: subprocess.CompletedProcess, needle: str) -> None:
+    """Status 2, one paragraph after ``nrt: error:`` that says ``needle``, no traceback."""
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "Traceback" not in proc.stderr and "HYDRA_FULL_ERROR" not in proc.stderr
     message = proc.stderr.split("nrt: error: ", 1)[-1]
     assert "nrt: error: " in proc.stderr and needle in message, proc.stderr[-3000:]
     assert "\n" not in message.strip(), message  # one paragraph
+
+
+def test_a_config_mistake_in_a_real_process(tmp_path):
+    """The same refusal from ``python -m nrt.cli.train`` as a process of its own."""
+    out = tmp_path / "out"
+    out.mkdir()
+    cmd = [sys.executable, "-m", "nrt.cli.train", "preset=tiny",
+           f"paths.data_dir={tmp_path / 'datasets'}", "foo=1"]
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    proc = subprocess.run(cmd, env={**env, "NRT_OUTPUT_DIR": str(out)}, capture_output=True,
+                          text=True, timeout=300)
+    assert_one_paragraph(proc, "foo=1: the config has no key 'foo'")
     assert list(out.iterdir()) == [] and not (tmp_path / "datasets").exists()
 
 

@@ -9,9 +9,7 @@ experiment it stands for."""
 from __future__ import annotations
 
 import dataclasses
-import os
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +22,7 @@ from nrt.cli.common import CONFIG_DIR
 from nrt.cli.config_errors import config_mistake
 from nrt.cli.schema import SCHEMAS, check_schema_keys, field_doc, field_names
 from nrt.errors import ConfigError
-from tests.conftest import compose_config, refusal
+from tests.conftest import cli_in_process, compose_config, refusal
 
 TYPED = ("scene", "losses", "model", "init")
 """The roots that hold typed settings (resolved here as nrt-train resolves the config)."""
@@ -184,15 +182,13 @@ CLI_MISTAKES = [  # (overrides of nrt-train, what the message must say)
 
 @pytest.mark.parametrize(("overrides", "needle"), CLI_MISTAKES)
 def test_schema_mistakes_end_in_one_paragraph_and_status_2(tmp_path: Path, overrides, needle):
-    """Through the real command line (composition, resolution and the key check): status
+    """Through the command (composition, resolution and the key check; in the test's
+    process, :func:`~tests.conftest.cli_in_process`): status
     2, one ``nrt: error:`` paragraph, no traceback, nothing written."""
     out, data = tmp_path / "out", tmp_path / "datasets"
     out.mkdir()
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    proc = subprocess.run([sys.executable, "-m", "nrt.cli.train", "preset=tiny",
-                           f"paths.data_dir={data}", *overrides],
-                          env={**env, "NRT_OUTPUT_DIR": str(out)}, capture_output=True,
-                          text=True, timeout=300)
+    proc = cli_in_process("train", "preset=tiny", f"paths.data_dir={data}", *overrides,
+                          env={"NRT_OUTPUT_DIR": str(out)})
     assert refusal(proc.returncode, proc.stderr).startswith(needle), proc.stderr[-2000:]
     assert list(out.iterdir()) == [] and not data.exists()
 

@@ -21,7 +21,15 @@ import pytest
 
 from nrt.errors import ConfigError, SceneError, WriteError
 from nrt.files import TEMP_MARK, atomic_write, check_name, check_output_folder
-from tests.conftest import ROOT, compose_config, only_run_dir, refusal, run_train, train_command
+from tests.conftest import (
+    ROOT,
+    cli_in_process,
+    compose_config,
+    only_run_dir,
+    refusal,
+    run_train,
+    train_command,
+)
 
 pytestmark = pytest.mark.e2e
 
@@ -38,6 +46,11 @@ def nrt(command: str, *args: str, cwd: Path, **popen) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", f"nrt.cli.{command}", *args], cwd=cwd,
                             env=env, text=True, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, **popen)
+
+
+def nrt_in_process(command: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    """:func:`nrt`'s command run to its end in the test's process (for refusals)."""
+    return cli_in_process(command, *args, cwd=cwd, env={"NRT_OUTPUT_DIR": str(cwd / "outputs")})
 
 
 def finished(proc: subprocess.Popen, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -74,7 +87,7 @@ def test_a_name_leaving_the_output_folder_writes_nothing(tmp_path, command, over
     outside the output folder; it is refused before any folder is made."""
     work = tmp_path / "a" / "b"
     work.mkdir(parents=True)
-    proc = finished(nrt(command, "preset=tiny", override, cwd=work))
+    proc = nrt_in_process(command, "preset=tiny", override, cwd=work)
     assert refusal(proc.returncode, proc.stderr).startswith(f"nrt: error: {key}=")
     outside = {p for p in tree(tmp_path) if not p.startswith("a/b/outputs/datasets/logs")}
     assert outside <= {"a", "a/b", "a/b/outputs", "a/b/outputs/datasets"}  # nrt-data's log
@@ -83,8 +96,8 @@ def test_a_name_leaving_the_output_folder_writes_nothing(tmp_path, command, over
 def test_an_output_folder_that_is_a_file_is_refused_before_anything(tmp_path):
     (tmp_path / "taken").write_text("a file")
     for command, key in (("train", "paths.output_dir"), ("data", "paths.data_dir")):
-        proc = finished(nrt(command, "preset=tiny", f"paths.output_dir={tmp_path}/taken/out",
-                            cwd=tmp_path))
+        proc = nrt_in_process(command, "preset=tiny", f"paths.output_dir={tmp_path}/taken/out",
+                              cwd=tmp_path)
         line = refusal(proc.returncode, proc.stderr)
         assert line.startswith(f"nrt: error: {key}:") and "is a file, not a folder" in line
     assert tree(tmp_path) == {"taken"}
@@ -105,7 +118,7 @@ def test_scalar_options_are_refused_like_the_budget(override):
 
 
 def test_seed_abc_is_one_paragraph_before_any_folder(tmp_path):
-    proc = finished(nrt("train", "preset=tiny", "seed=abc", cwd=tmp_path))
+    proc = nrt_in_process("train", "preset=tiny", "seed=abc", cwd=tmp_path)
     assert refusal(proc.returncode, proc.stderr).startswith("nrt: error: seed=abc: must be")
     assert not (tmp_path / "outputs").exists()
 
@@ -160,7 +173,9 @@ def test_killed_while_writing_a_checkpoint_leaves_a_loadable_last_ckpt(tmp_path)
 @pytest.mark.slow  # trains until a kill (~15-25 s)
 def test_nrt_train_killed_during_a_checkpoint_write_resumes(tmp_path, tiny_dataset):
     """The real ``nrt-train`` with a checkpoint every step, killed while its ``last.ckpt``
-    is being replaced: the file loads, and ``resume=true`` continues from it."""
+    is being replaced: the file loads, and ``resume=true`` continues from it in the same
+    folder, its training clock going on, the first run's config kept and the resumed run's
+    config and log written beside it."""
     import torch
 
     cmd, env = train_command(tmp_path, tiny_dataset.parent, "logger=csv",
@@ -181,15 +196,20 @@ def test_nrt_train_killed_during_a_checkpoint_write_resumes(tmp_path, tiny_datas
     assert caught is not None, "never caught a checkpoint being written"
     run = only_run_dir(tmp_path, "ea")
     saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
-    step = saved["global_step"]
+    step, clock = saved["global_step"], saved["callbacks"]["WallClock"]["elapsed"]
     assert step >= 1
     done = run_train(tmp_path, tiny_dataset.parent, "logger=csv", "resume=true",
-                     f"budget.ea.steps={step + 3}", "budget.checkpoint_every=1",
+                     f"budget.ea.steps={step + 20}", "budget.checkpoint_every=1",
                      "budget.val_every=1000")
     assert done.returncode == 0, done.stderr[-3000:]
+    assert only_run_dir(tmp_path, "ea") == run  # continued in place, no new run folder
     resumed = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False,
                          map_location="cpu")
-    assert resumed["global_step"] == step + 3
+    assert resumed["global_step"] == step + 20
+    assert resumed["callbacks"]["WallClock"]["elapsed"] > clock
+    assert "budget.ea.steps=100000" in (run / ".hydra" / "overrides.yaml").read_text()
+    assert list(run.glob(".hydra/resumed-*/overrides.yaml"))
+    assert list(run.glob("csv/resumed-*/metrics.csv"))
 
 
 @pytest.mark.slow  # two renders (~10 s)

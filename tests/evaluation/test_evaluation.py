@@ -29,7 +29,7 @@ from nrt.evaluation.evaluate import (
 )
 from nrt.metrics import ssim
 from nrt.weights import LPIPS_FILES, weights_dir
-from tests.conftest import read_csv_metrics, run_train, values
+from tests.conftest import cli_in_process, read_csv_metrics, run_train, values
 
 pytestmark = pytest.mark.e2e
 
@@ -51,12 +51,17 @@ def eval_metrics(proc: subprocess.CompletedProcess, out: Path) -> tuple[dict, Pa
     return json.loads((folder / "metrics.json").read_text())["metrics"], folder
 
 
+LPIPS_WEIGHTS = (weights_dir() / LPIPS_FILES["alex"]).is_file()
+"""The LPIPS weights are installed (``nrt-weights``; CI installs them)."""
+
+
 @pytest.fixture(scope="module")
 def truth_eval(tmp_path_factory, tiny_dataset):
-    """nrt-eval of the dataset's own ground truth (grids mode)."""
+    """nrt-eval of the dataset's own ground truth (grids mode); LPIPS with the real weights
+    where they are installed."""
     out = tmp_path_factory.mktemp("eval_truth")
     proc = run_eval(out, tiny_dataset.parent, f"grids={tiny_dataset / 'ground_truth.npz'}",
-                    "metrics.lpips=false")
+                    f"metrics.lpips={str(LPIPS_WEIGHTS).lower()}")
     return eval_metrics(proc, out)
 
 
@@ -114,20 +119,18 @@ def test_a_wrong_medium_scores_clearly_worse(truth_eval, tiny_dataset, tmp_path)
     assert metrics["ssim_novel"] < truth["ssim_novel"]
 
 
-@pytest.mark.skipif(not (weights_dir() / LPIPS_FILES["alex"]).is_file(),
-                    reason="LPIPS weights absent: run nrt-weights (CI does)")
-def test_eval_reports_real_lpips(tmp_path, tiny_dataset):
-    proc = run_eval(tmp_path, tiny_dataset.parent, f"grids={tiny_dataset / 'ground_truth.npz'}",
-                    "rerender.noise_floor=false", "relight.enabled=false", "export.mitsuba=false")
-    metrics, _ = eval_metrics(proc, tmp_path)
+@pytest.mark.skipif(not LPIPS_WEIGHTS, reason="LPIPS weights absent: run nrt-weights (CI does)")
+def test_eval_reports_real_lpips(truth_eval):
+    metrics, _ = truth_eval
     # the true medium re-rendered: Monte Carlo noise only (32x32 views at the tiny spp)
     assert 0.0 < metrics["lpips_novel"] < 0.2
 
 
-@pytest.mark.slow  # CLI processes (~6-8 s): keeps the fast tier under 3 minutes
 def test_lpips_missing_weights_is_a_clear_cli_error(tmp_path, tiny_dataset):
-    proc = run_eval(tmp_path, tiny_dataset.parent, f"grids={tiny_dataset / 'ground_truth.npz'}",
-                    env={"NRT_WEIGHTS_DIR": str(tmp_path / "empty")})
+    proc = cli_in_process("eval", "preset=tiny", f"paths.data_dir={tiny_dataset.parent}",
+                          "render.progress=false", f"grids={tiny_dataset / 'ground_truth.npz'}",
+                          env={"NRT_OUTPUT_DIR": str(tmp_path),
+                               "NRT_WEIGHTS_DIR": str(tmp_path / "empty")})
     assert proc.returncode == 2
     assert "nrt-weights" in proc.stderr and "metrics.lpips=false" in proc.stderr
     assert "Traceback" not in proc.stderr
@@ -135,17 +138,19 @@ def test_lpips_missing_weights_is_a_clear_cli_error(tmp_path, tiny_dataset):
 
 @pytest.mark.parametrize(("overrides", "needle"), [
     ((), "needs run=<run folder"),
-    pytest.param(("run={tmp}/missing/run",), "does not exist", marks=pytest.mark.slow),
-    pytest.param(("run={tmp}",), "is not a run folder of nrt-train", marks=pytest.mark.slow),
-    pytest.param(("grids={tmp}/missing.npz",), "is not a file", marks=pytest.mark.slow),
-    pytest.param(("grids={data}/ground_truth.npz", "scene.effects.phase=nope"), "effects.phase",
-                 marks=pytest.mark.slow),
-])  # each case starts a process (~6 s): one in the fast tier, the rest in the slow tier
+    (("run={tmp}/missing/run",), "does not exist"),
+    (("run={tmp}",), "is not a run folder of nrt-train"),
+    (("grids={tmp}/missing.npz",), "is not a file"),
+    (("grids={data}/ground_truth.npz", "scene.effects.phase=nope"), "effects.phase"),
+])
 def test_eval_input_errors_come_before_metric_setup(tmp_path, tiny_dataset, overrides, needle):
-    """Reported as what they are even when the LPIPS weights are missing."""
+    """Reported as what they are even when the LPIPS weights are missing (in the test's
+    process: a refusal costs a composition, not a Python start)."""
     overrides = [o.format(tmp=tmp_path, data=tiny_dataset) for o in overrides]
-    proc = run_eval(tmp_path / "out", tiny_dataset.parent, *overrides,
-                    env={"NRT_WEIGHTS_DIR": str(tmp_path / "empty")})
+    proc = cli_in_process("eval", "preset=tiny", f"paths.data_dir={tiny_dataset.parent}",
+                          "render.progress=false", *overrides,
+                          env={"NRT_OUTPUT_DIR": str(tmp_path / "out"),
+                               "NRT_WEIGHTS_DIR": str(tmp_path / "empty")})
     assert proc.returncode == 2 and needle in proc.stderr, proc.stderr[-2000:]
     assert "nrt-weights" not in proc.stderr
     assert not (tmp_path / "missing").exists()  # no eval folder inside a missing run

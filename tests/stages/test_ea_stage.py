@@ -2,8 +2,6 @@
 cases (dense and near-empty media) that must never put NaN or Inf in the parameters."""
 
 import math
-import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -18,13 +16,15 @@ from nrt.modules.fields.ea_field import EAField
 from nrt.run_dirs import SWEEP_FILE, discard_failed_start, new_run_dir, sweep_dir
 from nrt.stages.ea import EAModule
 from tests.conftest import (
+    NRT_TRAIN,
     ONE_SKY,
+    cli_in_process,
     compose_config,
     last_value,
     only_run_dir,
     read_csv_metrics,
-    run_train,
     train_command,
+    train_in_process,
 )
 from tests.finite_training import fit
 
@@ -50,56 +50,20 @@ def test_tiny_ea_trains_via_cli_and_beats_background(tiny_ea_run):
         assert grid["density"].shape == (32, 32, 32) and np.isfinite(grid["density"]).all()
 
 
-@pytest.mark.slow
-def test_killed_run_resumes_in_same_folder(tmp_path, tiny_dataset):
-    cmd, env = train_command(tmp_path, tiny_dataset.parent, "logger=csv", "budget.ea.steps=100000",
-                             "budget.checkpoint_every=10", "budget.val_every=1000")
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 180
-        ckpts = []
-        while time.time() < deadline and not ckpts:
-            ckpts = list(tmp_path.glob("default/ea/*/checkpoints/last.ckpt"))
-            time.sleep(0.5)
-        assert ckpts, "no checkpoint appeared"
-        time.sleep(1.0)
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-    run = only_run_dir(tmp_path, "ea")
-    saved = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
-    step, clock = saved["global_step"], saved["callbacks"]["WallClock"]["elapsed"]
-    assert step >= 10
-    done = run_train(tmp_path, tiny_dataset.parent, "resume=true", f"budget.ea.steps={step + 20}",
-                     "budget.checkpoint_every=10", "budget.val_every=1000", "logger=csv")
-    assert done.returncode == 0, done.stderr[-3000:]
-    assert only_run_dir(tmp_path, "ea") == run  # continued in place, no new run folder
-    resumed = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False,
-                         map_location="cpu")
-    assert resumed["global_step"] == step + 20
-    assert resumed["callbacks"]["WallClock"]["elapsed"] > clock
-    # The resumed run kept the first run's config and logged beside it, not over it.
-    assert "budget.ea.steps=100000" in (run / ".hydra" / "overrides.yaml").read_text()
-    assert list(run.glob(".hydra/resumed-*/overrides.yaml"))
-    assert list(run.glob("csv/resumed-*/metrics.csv"))
-
-
-@pytest.mark.slow  # a CLI process per case (~6 s): keeps the fast tier under 3 minutes
 def test_resume_without_checkpoint_is_a_clear_error(tmp_path, tiny_dataset):
-    proc = run_train(tmp_path, tiny_dataset.parent, "resume=true")
+    proc = train_in_process(tmp_path, tiny_dataset.parent, "resume=true")
     assert proc.returncode == 2
     assert "nrt: error: resume=True" in proc.stderr and "Traceback" not in proc.stderr
     assert list(tmp_path.iterdir()) == []  # no empty run folder left behind
 
 
-@pytest.mark.slow  # starts a sweep (~6 s); the single-run clean-up is in the fast tier
 def test_a_failed_multirun_start_leaves_no_folder(tmp_path):
     """``nrt-train -m``: the first job's start fails (no EA checkpoint), the sweep ends with
     ``nrt: error:`` and status 2, and neither the job's folder nor the sweep's remains."""
-    cmd, env = train_command(tmp_path, tmp_path / "datasets", "seed=0,1",
-                             "init.ea_ckpt=no/such.ckpt", stage="rte")
-    proc = subprocess.run([*cmd[:3], "-m", *cmd[3:]], env=env, capture_output=True,
-                          text=True, timeout=600)
+    cmd, _ = train_command(tmp_path, tmp_path / "datasets", "seed=0,1",
+                           "init.ea_ckpt=no/such.ckpt", stage="rte")
+    proc = cli_in_process("train", "-m", *cmd[len(NRT_TRAIN):],
+                          env={"NRT_OUTPUT_DIR": str(tmp_path)})
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "nrt: error: init.ea_ckpt='no/such.ckpt'" in proc.stderr
     assert list(tmp_path.iterdir()) == []

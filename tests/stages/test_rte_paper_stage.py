@@ -22,6 +22,7 @@ from tests.conftest import (
     only_run_dir,
     read_csv_metrics,
     run_train,
+    train_in_process,
     values,
 )
 from tests.finite_training import fit
@@ -99,7 +100,6 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(("stage", "overrides", "needle"), [
     ("rte", (), "stage=rte starts from the EA density"),
     ("dpt", (), "stage=dpt starts from the EA density"),
@@ -125,10 +125,11 @@ def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, n
     truncated transport; counts below 1; unknown names) is refused with ``nrt: error:``
     and exit status 2 before the dataset is rendered or loaded: the data folder (empty
     here, so the scene would have to be rendered first) stays untouched, and the failed
-    start leaves no run folder behind."""
+    start leaves no run folder behind. (In the test's process: a refusal costs a
+    composition, not a Python start.)"""
     data_root, out = tmp_path / "datasets", tmp_path / "out"
     out.mkdir()
-    proc = run_train(out, data_root, *overrides, stage=stage)
+    proc = train_in_process(out, data_root, *overrides, stage=stage)
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert f"nrt: error: {needle}" in proc.stderr or (
         "nrt: error:" in proc.stderr and needle in proc.stderr), proc.stderr[-3000:]
