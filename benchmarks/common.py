@@ -88,16 +88,18 @@ def newest_checkpoint(scene: str, dataset: str | None = None) -> Path | None:
     return (run / LAST_CKPT).resolve() if run is not None else None
 
 
-def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None) -> Path:
+def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None,
+                  ea_steps: int | None = None) -> Path:
     """The EA checkpoint of the scene named ``name`` (its EA runs under :func:`output_dir`):
     the newest one trained on the photos of ``preset`` and ``overrides`` (default: the
     benchmark scene ``name``'s, :data:`SCENES`; another photo seed needs its own name),
-    else a new stage-1 run's on them."""
+    else a new stage-1 run's on them (of ``ea_steps`` steps; None: the preset's)."""
     overrides = list(SCENES[name] if overrides is None else overrides)
     found = newest_checkpoint(name, scene_dataset(preset, overrides))
     if found is not None:
         return found
-    run = train("ea", output_dir(), preset, overrides)[0]
+    steps = [] if ea_steps is None else [f"budget.ea.steps={int(ea_steps)}"]
+    run = train("ea", output_dir(), preset, [*overrides, *steps])[0]
     return run / "checkpoints" / "last.ckpt"
 
 

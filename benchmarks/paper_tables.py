@@ -19,7 +19,7 @@ scenes, seconds), Table 2 (anisotropic set, g scored weighted by the true sigma_
 
     python -m benchmarks.paper_tables run [--iso 8] [--aniso 8] [--preset cpu]
         [--budget-s 600] [--every-s 50] [--ablation-scenes N] [--ablations a,b]
-        [--methods rte,dpt] [--data DIR]
+        [--methods rte,dpt] [--ea-steps N] [--data DIR]
     python -m benchmarks.paper_tables redraw [--data DIR] [--figures DIR]
 """
 
@@ -126,7 +126,7 @@ def run_all(args) -> None:
         print(f"[{i}/{len(runs)}] {name} {method}: training {args.budget_s:.0f} s; about "
               f"{left:.0f} min left (EA runs of new scenes come on top)", flush=True)
         overrides = scene_overrides(set_name, sets["sets"][set_name]["phase"], scene)
-        ckpt = ea_checkpoint(name, args.preset, overrides)
+        ckpt = ea_checkpoint(name, args.preset, overrides, args.ea_steps)
         start = time.perf_counter()
         record = run_method(path, stage_overrides, overrides, ckpt, args.budget_s, args.every_s,
                             args.preset, args.out, {"set": set_name, "scene": name,
@@ -237,6 +237,8 @@ def main() -> None:
     run.add_argument("--budget-s", type=float, default=600.0)
     run.add_argument("--every-s", type=float, default=50.0)
     run.add_argument("--preset", default="cpu")
+    run.add_argument("--ea-steps", type=int, help="steps of a new scene's EA run (default: "
+                     "the preset's)")
     run.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "paper_tables")
     redraw_cmd = sub.add_parser("redraw", help="tables and figures from the recorded files")
     redraw_cmd.add_argument("--figures", type=Path, default=FIGURES)

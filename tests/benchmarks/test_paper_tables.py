@@ -123,7 +123,8 @@ def test_the_command_runs_two_scenes_end_to_end_at_tiny(tmp_path):
     data = tmp_path / "data"
     cmd = [sys.executable, "-m", "benchmarks.paper_tables", "run", "--iso", "1", "--aniso", "1",
            "--ablation-scenes", "0", "--methods", "rte", "--preset", "tiny", "--budget-s", "4",
-           "--every-s", "2", "--data", str(data), "--out", str(tmp_path / "runs")]
+           "--every-s", "2", "--ea-steps", "20", "--data", str(data),
+           "--out", str(tmp_path / "runs")]
     proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "[1/2]" in proc.stdout and "min left" in proc.stdout
