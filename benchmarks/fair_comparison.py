@@ -9,7 +9,10 @@ formulation). Both stage 2 and the baseline start from the EA density baked on t
 cells and learn g. The property MSE is measured every ``--every-s`` training seconds with
 the clock paused (for every method alike), and ``nrt-eval`` re-renders each result with
 Mitsuba under the held-back sky at the dataset's spp, beside the true medium's noise
-floor: one measurement for all methods. Per run, ``<data>/<scene>/photo<N>/<method>.csv``
+floor: one measurement for all methods. With ``--photo-variant scalar_rgb`` new photos are
+rendered by Mitsuba's scalar fallback (the variant where LLVM is missing) as realisations
+of their own (``<scene>_photo<N>_scalar_rgb``, folder ``photo<N>_scalar_rgb``). Per run,
+``<data>/<scene>/photo<N>/<method>.csv``
 (the curves) and ``<method>.json`` (nrt-eval's metrics, steps, seconds) are written; a
 run whose JSON exists is skipped, so a killed comparison resumes.
 
@@ -18,8 +21,8 @@ realisation, log time) and the Markdown table (mean and spread over realisations
 and method, time-to-accuracy) from those files alone.
 
     python -m benchmarks.fair_comparison run [--scenes default,heldout,...] [--photo-seeds 0,1]
-        [--methods rte,dpt,rte_paper] [--paper-on default] [--budget-s 600] [--every-s 25]
-        [--preset cpu] [--data DIR] [--out DIR]
+        [--photo-variant auto] [--methods rte,dpt,rte_paper] [--paper-on default]
+        [--budget-s 600] [--every-s 25] [--preset cpu] [--data DIR] [--out DIR]
     python -m benchmarks.fair_comparison redraw [--data DIR] [--figure PNG] [--table MD]
 """
 
@@ -50,20 +53,29 @@ LABELS = {"rte": "stage 2 (nrt)", "dpt": "path tracing (baseline)",
 COLOURS = {"rte": "tab:blue", "dpt": "tab:red", "rte_paper": "tab:green"}
 
 
-def scene_overrides(scene: str, photo_seed: int) -> tuple[str, list[str]]:
-    """The name of a realisation and its overrides of the default scene."""
-    if photo_seed == 0:
+def scene_overrides(scene: str, photo_seed: int, variant: str = "auto"
+                    ) -> tuple[str, list[str]]:
+    """The name of a realisation and its overrides of the default scene; photos rendered by
+    Mitsuba's ``variant`` (``auto``: the best one present) when they are rendered."""
+    if photo_seed == 0 and variant == "auto":
         return scene, list(SCENES[scene])
-    name = f"{scene}_photo{photo_seed}"
-    return name, [*SCENES[scene], f"scene.photo_seed={photo_seed}", f"scene.name={name}"]
+    name = f"{scene}_photo{photo_seed}" + ("" if variant == "auto" else f"_{variant}")
+    return name, [*SCENES[scene], f"scene.photo_seed={photo_seed}", f"scene.name={name}",
+                  *([] if variant == "auto" else [f"render.variant={variant}"])]
+
+
+def realisation_folder(photo_seed: int, variant: str = "auto") -> str:
+    """``photo<N>``, or ``photo<N>_<variant>`` for photos rendered by a chosen variant."""
+    return f"photo{photo_seed}" + ("" if variant == "auto" else f"_{variant}")
 
 
 def run_all(args) -> None:
     methods = args.methods.split(",")
     for scene in args.scenes.split(","):
         for seed in map(int, args.photo_seeds.split(",")):
-            name, overrides = scene_overrides(scene, seed)
-            folder = args.data / scene / f"photo{seed}"
+            name, overrides = scene_overrides(scene, seed, args.photo_variant)
+            label = f"{scene} {realisation_folder(seed, args.photo_variant)}"
+            folder = args.data / scene / realisation_folder(seed, args.photo_variant)
             folder.mkdir(parents=True, exist_ok=True)
             ckpt = None
             for method in methods:
@@ -71,22 +83,26 @@ def run_all(args) -> None:
                     continue
                 result = folder / f"{method}.json"
                 if result.is_file():
-                    print(f"{scene} photo{seed} {method}: done already", flush=True)
+                    print(f"{label} {method}: done already", flush=True)
                     continue
                 ckpt = ckpt or ea_checkpoint(name, args.preset, overrides)
                 record = run_method(folder / method, METHODS[method], overrides, ckpt,
                                     args.budget_s, args.every_s, args.preset, args.out,
-                                    {"scene": scene, "photo_seed": seed, "method": method})
-                print(summary_line(f"{scene} photo{seed} {method}", record), flush=True)
+                                    {"scene": scene, "photo_seed": seed, "method": method,
+                                     "photo_variant": args.photo_variant})
+                print(summary_line(f"{label} {method}", record), flush=True)
 
 
 # ------------------------------------------------------------------------- redraw
-def read_results(data: Path) -> dict[tuple[str, int, str], dict]:
-    """(scene, photo seed, method) -> the run's record, with its curve as arrays."""
+def read_results(data: Path) -> dict[tuple[str, str, str], dict]:
+    """(scene, realisation (:func:`realisation_folder`), method) -> the run's record, with
+    its curve as arrays."""
     out = {}
     for path in sorted(data.glob("*/photo*/*.json")):
         record = read_record(path)
-        out[(record["scene"], int(record["photo_seed"]), record["method"])] = record
+        photos = realisation_folder(int(record["photo_seed"]),
+                                    record.get("photo_variant", "auto"))
+        out[(record["scene"], photos, record["method"])] = record
     return out
 
 
@@ -125,16 +141,16 @@ def table(results: dict) -> str:
                 cells.append(mean_spread([r["metrics"].get(key, math.nan) for r in recs]))
             cells.append(mean_spread([float(r["steps"]) for r in recs]).split(".")[0])
             lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "| scene | photo seed | stage 2 s to the baseline's end sigma_t | baseline s to "
-              "stage 2's end sigma_t | budget s |", "|---|---:|---:|---:|---:|"]
-    for (scene, seed, method), rte in sorted(results.items()):
-        dpt = results.get((scene, seed, "dpt"))
+    lines += ["", "| scene | photos | stage 2 s to the baseline's end sigma_t | baseline s to "
+              "stage 2's end sigma_t | budget s |", "|---|---|---:|---:|---:|"]
+    for (scene, photos, method), rte in sorted(results.items()):
+        dpt = results.get((scene, photos, "dpt"))
         if method != "rte" or dpt is None:
             continue
         a = seconds_to_reach(rte["curve"], "sigma_t", dpt["metrics"]["mse_sigma_t_x100"])
         b = seconds_to_reach(dpt["curve"], "sigma_t", rte["metrics"]["mse_sigma_t_x100"])
         never = f"never (> {dpt['seconds']:.0f})"
-        lines.append(f"| {scene} | {seed} | {a:.0f} | {never if math.isnan(b) else f'{b:.0f}'} "
+        lines.append(f"| {scene} | {photos} | {a:.0f} | {never if math.isnan(b) else f'{b:.0f}'} "
                      f"| {rte['budget_s']:.0f} |")
     return "\n".join(lines) + "\n"
 
@@ -154,16 +170,16 @@ def figure(results: dict, path: Path) -> Path:
     for row, scene in enumerate(scenes):
         for col, key in enumerate(PROPERTIES):
             ax = axes[row][col]
-            for (s, seed, method), rec in sorted(results.items()):
+            for (s, photos, method), rec in sorted(results.items()):
                 c = rec["curve"]
                 ok = np.isfinite(c[key])
                 if s != scene or not ok.any():
                     continue
                 # log time has no zero: the start (step 0) is drawn at half the first interval
                 t = np.maximum(c["wall_s"], c["wall_s"][c["wall_s"] > 0].min(initial=1.0) / 2)
-                style = "-" if seed == 0 else "--"
+                style = "-" if photos == "photo0" else "--"
                 ax.plot(t[ok], c[key][ok], style, color=COLOURS[method], lw=1.2,
-                        label=f"{LABELS[method]}, photos {seed}")
+                        label=f"{LABELS[method]}, {photos}")
                 ax.plot(t[ok][:1], c[key][ok][:1], "o", color=COLOURS[method], ms=3)
                 if method == "dpt":
                     best = int(np.nanargmin(c[key]))
@@ -199,6 +215,9 @@ def main() -> None:
     run = sub.add_parser("run", help="train, evaluate and record")
     run.add_argument("--scenes", default="default,heldout,heldout2,heldout3,heldout4")
     run.add_argument("--photo-seeds", default="0,1")
+    run.add_argument("--photo-variant", default="auto",
+                     help="the Mitsuba variant that renders new photos (scalar_rgb: the "
+                          "fallback where LLVM is missing); its realisations are kept apart")
     run.add_argument("--methods", default="rte,dpt,rte_paper")
     run.add_argument("--paper-on", default="default", help="scenes that run rte_paper too")
     run.add_argument("--budget-s", type=float, default=600.0)

@@ -192,23 +192,24 @@ def _record(folder: Path, method: str, times, sigma_t, end_psnr: float) -> None:
     metrics = {"mse_sigma_a_x100": 1.0, "mse_sigma_s_x100": 2.0,
                "mse_sigma_t_x100": sigma_t[-1], "mse_g_x100": 0.5, "psnr_novel": end_psnr,
                "ssim_novel": 0.9, "lpips_novel": 0.05, "psnr_noise_floor_novel": 40.0}
-    seed = int(folder.name.removeprefix("photo"))
+    seed, _, variant = folder.name.removeprefix("photo").partition("_")
     (folder / f"{method}.json").write_text(json.dumps({
-        "scene": folder.parent.name, "photo_seed": seed, "method": method, "budget_s": 40.0,
+        "scene": folder.parent.name, "photo_seed": int(seed), "method": method,
+        "photo_variant": variant or "auto", "budget_s": 40.0,
         "preset": "tiny", "seconds": times[-1], "steps": 100, "curve_points": len(times),
         "learns_g": True, "metrics": metrics}))
 
 
 def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     """``fair_comparison redraw`` needs only the committed CSV and JSON files: the table
-    gives mean and half range over realisations, and each method's time to reach the
-    other's final sigma_t (never, when it does not)."""
+    gives mean and half range over realisations (one of them photos of the scalar variant),
+    and each method's time to reach the other's final sigma_t (never, when it does not)."""
     data = tmp_path / "data"
     times = [0.0, 10.0, 20.0, 30.0, 40.0]
-    for seed, shift in ((0, 0.0), (1, 0.2)):
-        _record(data / "default" / f"photo{seed}", "rte", times,
-                [9.0, 6.0, 4.0 + shift, 3.0 + shift, 2.0 + shift], 35.0 + seed)
-        _record(data / "default" / f"photo{seed}", "dpt", times,
+    for k, (photos, shift) in enumerate((("photo0", 0.0), ("photo2_scalar_rgb", 0.2))):
+        _record(data / "default" / photos, "rte", times,
+                [9.0, 6.0, 4.0 + shift, 3.0 + shift, 2.0 + shift], 35.0 + k)
+        _record(data / "default" / photos, "dpt", times,
                 [9.0, 8.0, 7.0, 6.5, 6.0], 34.0)
     figure, table = tmp_path / "fig.png", tmp_path / "table.md"
     proc = subprocess.run([sys.executable, "-m", "benchmarks.fair_comparison", "redraw",
@@ -223,8 +224,21 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
         "2.000 ± 0.000 | 6.000 ± 0.000 |" in text
     assert "35.500 ± 0.500" in text  # the PSNR over the two realisations
     # stage 2 reaches the baseline's end (6.0) at 10 s; the baseline never reaches 2.0 / 2.2
-    assert "| default | 0 | 10 | never (> 40) | 40 |" in text
-    assert "| default | 1 | 10 | never (> 40) | 40 |" in text
+    assert "| default | photo0 | 10 | never (> 40) | 40 |" in text
+    assert "| default | photo2_scalar_rgb | 10 | never (> 40) | 40 |" in text
+
+
+def test_a_realisation_of_the_scalar_variant_is_a_scene_of_its_own():
+    """Photos of another variant never share a name (and so a dataset folder or EA run)
+    with the same seed's photos of the best variant."""
+    from benchmarks.fair_comparison import realisation_folder, scene_overrides
+
+    assert scene_overrides("heldout", 0) == ("heldout", ["scene=heldout"])
+    name, overrides = scene_overrides("heldout", 0, "scalar_rgb")
+    assert name == "heldout_photo0_scalar_rgb" and "render.variant=scalar_rgb" in overrides
+    assert f"scene.name={name}" in overrides and "scene.photo_seed=0" in overrides
+    assert realisation_folder(1) == "photo1"
+    assert realisation_folder(0, "scalar_rgb") == "photo0_scalar_rgb"
 
 
 def test_tuning_refuses_a_blind_scene(tmp_path):
