@@ -22,6 +22,7 @@ from nrt.run_dirs import LAST_CKPT, RUN_FILE
 from nrt.stages.checkpoints import load_stage
 
 if TYPE_CHECKING:
+    from nrt.evaluation.sample import LatentMediumModel
     from nrt.stages.stage import Stage
 
 log = logging.getLogger(__name__)
@@ -159,13 +160,17 @@ def open_generative_run(path: str | Path) -> GenerativeRun:
                          str(cfg.model._target_))
 
 
-def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> Stage:
-    """The run's module from ``checkpoint`` on the CPU in eval mode, checked to decode
-    codes (``codes``, ``member_names``, ``property_grids_for``)."""
+def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> LatentMediumModel:
+    """The scene family of the run's stage (its ``scenes``, :mod:`nrt.stages.family`) from
+    ``checkpoint``, on the CPU in eval mode, checked to decode codes (``codes``,
+    ``member_names``, ``property_grids_for``)."""
     ckpt = checkpoint_path(run.path, checkpoint)
     module = load_stage(stage_class(run.path, run.model_target), ckpt)
-    if not all(hasattr(module, a) for a in ("codes", "member_names", "property_grids_for")):
+    family = getattr(module, "scenes", None)
+    if not all(hasattr(family, a) for a in ("codes", "member_names", "property_grids_for",
+                                            "medium_bbox")):
         raise NrtError(f"run='{run.path}': its module {run.model_target} has no latent codes "
                        f"and decoder; nrt-sample needs a generative stage-2 run "
                        f"(`{GENERATIVE_RTE}`).")
-    return module.eval()
+    module.eval()
+    return family

@@ -59,10 +59,10 @@ MIN_CROP = 16
 
 
 class LatentMediumModel(Protocol):
-    """What ``nrt-sample`` needs of a generative stage-2 module:
-    ``codes`` (K, d_z), one row per family member in the family's order, and the medium
-    decoded from any code on ``resolution``^3 cells in the format of
-    ``Stage.property_grids`` (CPU, no gradient)."""
+    """What ``nrt-sample`` needs of a generative stage-2 run (its scene family,
+    :class:`~nrt.stages.family.SceneFamily`): ``codes`` (K, d_z), one row per family member
+    in the family's order, and the medium decoded from any code on ``resolution``^3 cells
+    in the format of ``Stage.property_grids`` (CPU, no gradient)."""
 
     codes: torch.Tensor
 

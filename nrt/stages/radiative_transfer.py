@@ -186,11 +186,14 @@ class RadiativeTransferStage(Stage):
 
     # ------------------------------------------------------------------ export
     def export(self, run_dir: str | Path) -> dict[str, str]:
-        """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) at ``property_resolution``
-        (default: the ground truth's, else 64)."""
+        """Write ``medium_grids.npz`` (:mod:`nrt.data.grids`) of :meth:`property_grids` at
+        ``property_resolution`` (default: the ground truth's, else 64); nothing without
+        them (forward mode, a family's media)."""
         if not self.learns_medium:
             return {}
         res = self.grid_resolution(self.hparams.property_resolution, 64)
-        path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, self.property_grids(res),
-                                   self.medium.bbox)
+        grids = self.property_grids(res)
+        if grids is None:
+            return {}
+        path = save_property_grids(Path(run_dir) / MEDIUM_GRIDS_FILE, grids, self.medium.bbox)
         return {"medium_grids": str(path)}

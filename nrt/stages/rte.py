@@ -28,10 +28,13 @@ modulated by a grid that doubles during the run. The photo objective starts afte
 ``light_warmup`` of the run, so the medium does not explain light the light field has not
 learned yet.
 
-Components, each in its own module: a light field per training sky
-(:mod:`~nrt.stages.sky_lights`), the density start (:mod:`~nrt.stages.start`), the
-uncollided light's cache refreshed from the current medium
-(:mod:`~nrt.stages.uncollided`) and the optional coupling (:mod:`~nrt.stages.coupling`).
+Components, each in its own module: the scene source (:mod:`~nrt.stages.scene_source`),
+which supplies the step's (medium, light) pairs: the single scene
+(:mod:`~nrt.stages.single_scene`, with its density start, :mod:`~nrt.stages.start`) or,
+with ``mode=generative``, the members of a scene family (:mod:`~nrt.stages.family`); a
+light field per training sky (:mod:`~nrt.stages.sky_lights`), the uncollided light's cache
+refreshed from the current media (:mod:`~nrt.stages.uncollided`) and the optional coupling
+(:mod:`~nrt.stages.coupling`).
 
 Forward mode (``stage=forward``): the medium is the dataset's ground truth and only the
 transport objective runs.
@@ -42,6 +45,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from pathlib import Path
 
 import torch
 from torch import nn
@@ -58,30 +62,24 @@ from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import render_view_rays, transmitted_background
 from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.sky_light import sky_inscatter
-from nrt.stages.components import stage_2_components
+from nrt.stages.components import factory_config, stage_2_components
 from nrt.stages.coupling import AdjointCoupling, coupling_settings
 from nrt.stages.radiative_transfer import RadiativeTransferStage
+from nrt.stages.scene_source import SceneSource, scene_source_factory
 from nrt.stages.sky_lights import SkyLights
 from nrt.stages.stage import check_learning_rates
-from nrt.stages.start import DensityStart
 from nrt.stages.uncollided import UncollidedCache
 
 log = logging.getLogger(__name__)
 
-FITS = ("The split stage (stage=rte, stage=forward) takes model/light_field=sh_grid and "
-        "model/medium=voxel; the SIREN light field and the siren or grid media belong to the "
-        "paper's formulation (experiment=rte_paper)")
-
 
 class RTEStage(RadiativeTransferStage):
     """A scattered-light field and a voxelised medium (by default the SH grid and the voxel
-    medium) on the photo and transport objectives. The objectives and renderings take the
-    medium and the light as arguments, so the generative stage
-    (:mod:`nrt.stages.generative_rte`) runs them per family member."""
+    medium) on the photo and transport objectives, over the (medium, light) pairs of its
+    scene source (``scenes``, :mod:`~nrt.stages.scene_source`; None: the single scene). The
+    light field and the medium keep the source's protocols (a family's are latent); the
+    objectives and renderings take the medium and the light as arguments."""
 
-    LIGHT_PROTOCOL: type = ScatteredLightField
-    MEDIUM_PROTOCOL: type = VoxelisedMedium
-    FITS = FITS
     MANY_ENVIRONMENTS = True
     voxel_media = True
 
@@ -91,10 +89,14 @@ class RTEStage(RadiativeTransferStage):
                  light_warmup: float = 0.05,
                  sun: dict | None = None, eval_chunk: int = 4096,
                  property_resolution: int | None = None, coupling: dict | None = None,
-                 objectives: Mapping[str, Callable[..., Objective] | dict] | None = None):
+                 objectives: Mapping[str, Callable[..., Objective] | dict] | None = None,
+                 scenes: Callable[..., SceneSource] | dict | None = None):
         super().__init__(effects, density, sun, property_resolution)
         (make_light, make_medium, make_objectives), (light_field, medium, objectives) = \
             stage_2_components(light_field, medium, objectives)
+        make_scenes = scene_source_factory(scenes)
+        if scenes is not None:
+            scenes = factory_config(make_scenes)
         self.save_hyperparameters()  # the components' configs
         self.automatic_optimization = False
         waits = {name: light_warmup for name, make in make_objectives.items()
@@ -106,19 +108,19 @@ class RTEStage(RadiativeTransferStage):
             self.objectives = {name: unit for name, unit in self.objectives.items()
                                if not unit.medium_only}
         check_learning_rates(lr, "model.lr", ("light", "medium"))
-        self.light = build(make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS,
+        kind = make_scenes.func  # the source's class: the protocols of its light and medium
+        self.light = build(make_light, kind.LIGHT_PROTOCOL, "light_field", kind.FITS,
                            effects=effects)
         self.more_lights = nn.ModuleList()  # the 2nd, 3rd ... training environment's
         self.sky_lights = SkyLights(self.light, self.more_lights, lambda: build(
-            make_light, self.LIGHT_PROTOCOL, "light_field", self.FITS, effects=self.effects))
+            make_light, kind.LIGHT_PROTOCOL, "light_field", kind.FITS, effects=self.effects))
         if self.learns_medium:  # init=none: the modulation alone (rho = 1)
-            self.medium = build(make_medium, self.MEDIUM_PROTOCOL, "medium", self.FITS, effects)
+            self.medium = build(make_medium, kind.MEDIUM_PROTOCOL, "medium", kind.FITS, effects)
         self.coupling = coupling_settings(coupling)
         self.adjoint: AdjointCoupling | None = None  # with coupling.adjoint
         if self.coupling["adjoint"] and self.learns_medium:
             self.adjoint = AdjointCoupling(self.light, self.coupling["adjoint_blend"])
-        self.start = DensityStart(density)
-        self._baked = False
+        self.scenes: SceneSource = make_scenes(self)
         self.uncollided = UncollidedCache(samples)
 
     # ----------------------------------------------------------------- set-up
@@ -132,10 +134,8 @@ class RTEStage(RadiativeTransferStage):
             if len(self.illuminations) > 1:
                 log.info("Stage 2 trains on %d environments, a light field each",
                          len(self.illuminations))
-        if self.learns_medium and self.start.bakes and not self._baked \
-                and self.datamodule() is not None:
-            self.bake_density()  # a resumed run loads the same values
-            self._baked = True
+        if self.datamodule() is not None:
+            self.scenes.setup(self.datamodule())
 
     @property
     def env_lights(self) -> list[ScatteredLightField]:
@@ -143,13 +143,9 @@ class RTEStage(RadiativeTransferStage):
         :attr:`illuminations` (:class:`~nrt.stages.sky_lights.SkyLights`)."""
         return self.sky_lights.fields
 
-    def bake_density(self) -> None:
-        """Bake the start (:class:`~nrt.stages.start.DensityStart`: the EA run's density, or
-        with ``init=oracle`` the truth or its blend with it) into the medium."""
-        self.start.bake(self.medium, self.datamodule().ground_truth)
-
     def param_groups(self) -> list[dict]:
-        """Adam's groups: the light field's parameters and the medium's (``model.lr``)."""
+        """Adam's groups: the light field's parameters and the medium's (``model.lr``), then
+        the scene source's (a family's codes)."""
         lr = self.hparams.lr
         groups = [{"params": [p for light in self.env_lights for p in light.parameters()],
                    "lr": lr["light"]}]
@@ -157,7 +153,7 @@ class RTEStage(RadiativeTransferStage):
             groups.append({"params": list(self.adjoint.parameters()), "lr": lr["light"]})
         if self.learns_medium:
             groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"]})
-        return groups
+        return groups + self.scenes.param_groups()
 
     def configure_optimizers(self):
         opt = torch.optim.Adam(self.param_groups())
@@ -170,17 +166,12 @@ class RTEStage(RadiativeTransferStage):
         learned medium, the ground truth itself in forward mode."""
         return self.medium.voxels() if self.learns_medium else self.medium
 
-    def fresh_voxels(self) -> list:
-        """The learned media composed anew (a graph of their own, for an objective that
-        reads them after another's backward has freed the step's): one here, the medium."""
-        return [self.medium.voxels()]
-
     def step_context(self, scenes) -> StepContext:
         """The base's context with the photos' in-scattering (:meth:`photo_source`) and the
-        learned voxel media (:meth:`fresh_voxels`; none in forward mode)."""
+        learned voxel media (the source's ``fresh_voxels``; none in forward mode)."""
         context = super().step_context(scenes)
         context.photo_source = self.photo_source
-        context.voxels = self.fresh_voxels if self.learns_medium else None
+        context.voxels = self.scenes.fresh_voxels if self.learns_medium else None
         return context
 
     def photo_source(self, medium, light: ScatteredLightField):
@@ -245,22 +236,40 @@ class RTEStage(RadiativeTransferStage):
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         self._update_resolution()
-        medium = self.transport_medium()
-        scenes = [(medium, light) for light in self.env_lights]
+        scenes = self.scenes.pairs()
         self.refresh_uncollided(scenes)
         opt.zero_grad(set_to_none=True)
-        if len(scenes) > 1:
-            batch = {**batch, "scene": self.sky_lights.scenes_of(batch["env"])}
-        total = self.backward_objectives(batch, self.step_context(scenes))
+        scene = self.scenes.scene_of(batch)
+        if scene is not None:
+            batch = {**batch, "scene": scene}
+        total = self.backward_priors(self.backward_objectives(batch,
+                                                              self.step_context(scenes)))
         grad = self.adjoint.take_gradient() if self.adjoint is not None else None
-        if grad is not None:
-            self.adjoint_step(medium, grad)
+        if grad is not None:  # one environment, one pair (setup refuses more)
+            self.adjoint_step(scenes[0][0], grad)
+        for name, value in self.scenes.step_metrics().items():
+            self.log(f"train/{name}", value)
         if self.learns_medium:
             self.log("train/medium_resolution", float(self.medium.resolution))
         with record_function("nrt/optimizer"):
             opt.step()
             self.lr_schedulers().step()
         return torch.as_tensor(total)
+
+    def backward_priors(self, total: torch.Tensor) -> torch.Tensor:
+        """Backpropagate the scene source's priors while a medium objective is active (beside
+        their data term: alone, Adam would scale their tiny gradient up to full steps),
+        logging each; returns ``total`` (the objectives' weighted loss) plus those that
+        acted, detached."""
+        priors = self.scenes.priors()
+        acting = priors and any(self.objectives[name].medium_only
+                                for name in self.active_weights())
+        for name, prior in priors.items():
+            if acting:
+                self.manual_backward(prior)
+                total = total + prior.detach()
+            self.log(f"train/{name}", prior.detach())
+        return total
 
     def adjoint_step(self, medium, grad: torch.Tensor) -> None:
         """One step of the adjoint coupling from the photo loss's gradient ``grad`` to the
@@ -276,11 +285,12 @@ class RTEStage(RadiativeTransferStage):
 
     # ------------------------------------------------------------- validation
     def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
-        """:meth:`predict_pixels` of a held-out view lit by its own environment's light."""
-        light = self.sky_lights.of_env(int(batch["env"]))
+        """:meth:`predict_pixels` of a held-out view through the scene source's pair for it
+        (its environment's light; a family member's medium and light)."""
         with torch.no_grad():
+            medium, light = self.scenes.view_pair(batch)
             return self.render_pixels(batch["origins"], batch["dirs"], batch["background"],
-                                      self.transport_medium(), light)
+                                      medium, light)
 
     def predict_pixels(self, origins: torch.Tensor, dirs: torch.Tensor,
                        background: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -307,16 +317,40 @@ class RTEStage(RadiativeTransferStage):
                                                       int(s["vre_samples"])) + scattered)
         return {k: torch.cat(v) for k, v in out.items()}
 
+    # ------------------------------------------------------- grids and export
+    def property_grids(self, resolution: int) -> dict[str, torch.Tensor] | None:
+        """The scene source's: the learned medium of a single scene (None in forward mode),
+        None for a family (one medium per member)."""
+        return self.scenes.property_grids(resolution)
+
+    def member_property_grids(self, member: int, resolution: int
+                              ) -> dict[str, torch.Tensor] | None:
+        return self.scenes.member_property_grids(member, resolution)
+
+    def export(self, run_dir: str | Path) -> dict[str, str]:
+        """The base's ``medium_grids.npz`` (of a single scene) and what the scene source
+        writes (a family's members and codes), at ``property_resolution``."""
+        return {**super().export(run_dir),
+                **self.scenes.export(Path(run_dir), self.hparams.property_resolution)}
+
     # ------------------------------------------------------------------ resume
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """Also record the scene source's settings learned at the start of the run (a
+        family's EA field and members) with its config, so that the checkpoint rebuilds it."""
+        super().on_save_checkpoint(checkpoint)
+        if self.hparams.scenes is not None and "hyper_parameters" in checkpoint:
+            checkpoint["hyper_parameters"]["scenes"] = {**self.hparams.scenes,
+                                                        **self.scenes.settings()}
+
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """The baked density comes with the state (no EA field needed); the medium resizes
-        its grid to the checkpoint's itself
+        """The scene source's start comes with the state (no EA field needed); the medium
+        resizes its grid to the checkpoint's itself
         (:class:`~nrt.modules.fields.voxel_medium.VoxelMedium`); the light fields of more
         environments than one are built to receive theirs. The uncollided caches come
         with the state too: a resumed run refreshes them on their schedule, as the run left
         alone does, not at once."""
         super().on_load_checkpoint(checkpoint)
-        self._baked = True
+        self.scenes.on_load_checkpoint(checkpoint)
         self.uncollided.fresh = checkpoint.get("global_step", 0) > 0
         more = {key.split(".")[1] for key in checkpoint["state_dict"]
                 if key.startswith("more_lights.")}

@@ -160,8 +160,15 @@ class Stage(L.LightningModule):
         """Cells per axis of exported or scored grids: ``requested``, else that of the first
         of ``truths`` (default: the dataset's ground truth; a family passes its members')
         that exists, else ``fallback``."""
-        if requested is not None:
-            return int(requested)
-        truths = [self.ground_truth()] if truths is None else truths
-        gt = next((t for t in truths if t is not None), None)
-        return int(gt["g"].shape[0]) if gt is not None else int(fallback)
+        return grid_resolution(requested, fallback,
+                               [self.ground_truth()] if truths is None else truths)
+
+
+def grid_resolution(requested: int | None, fallback: int,
+                    truths: Sequence[dict[str, torch.Tensor] | None]) -> int:
+    """Cells per axis of exported or scored grids: ``requested``, else that of the first of
+    ``truths`` (ground-truth grids) that exists, else ``fallback``."""
+    if requested is not None:
+        return int(requested)
+    gt = next((t for t in truths if t is not None), None)
+    return int(gt["g"].shape[0]) if gt is not None else int(fallback)

@@ -156,7 +156,7 @@ def test_checkpoints_record_components_as_configs_and_load(tmp_path: Path, cls):
         cls.load_from_checkpoint(old, map_location="cpu")
 
 
-@pytest.mark.parametrize("version", [0, 2, "x"])
+@pytest.mark.parametrize("version", [0, 3, "x"])
 def test_a_checkpoint_of_another_format_is_refused(tmp_path: Path, version):
     """A checkpoint records nrt's checkpoint format; one of another (older or unknown) is
     refused with the version and the fix, both where nrt loads a stage and on a resume."""
@@ -175,6 +175,11 @@ def test_a_checkpoint_of_another_format_is_refused(tmp_path: Path, version):
     with pytest.raises(NrtError, match=message):
         model.on_load_checkpoint({FORMAT_KEY: version, "state_dict": {}})
     check_format({}, "unstamped")  # format 1 before it was recorded
+    check_format({FORMAT_KEY: 1, "hyper_parameters": dict(model.hparams)}, "format 1")
+    # generative stage 2 of format 1: its own class, its family's settings at the top
+    with pytest.raises(NrtError, match="format 1, written by an older nrt"):
+        check_format({FORMAT_KEY: 1, "hyper_parameters": {"ea_field": {}, "members": 4}},
+                     "generative")
 
 
 def test_a_run_folder_of_an_unknown_stage_is_refused(tmp_path: Path):

@@ -318,12 +318,14 @@ def test_bad_configs_exit_2_before_any_data(tmp_path):
 
 
 def cli_family_run(family_dir: Path, stage: str, args: tuple[str, ...], steps: tuple[int, int],
-                   member_metrics: tuple[str, ...], member_file: str) -> tuple[Path, dict, dict]:
+                   member_metrics: tuple[str, ...], member_file: str, codes_key: str = "codes"
+                   ) -> tuple[Path, dict, dict]:
     """``nrt-train stage=<stage>`` in generative mode on the test family for ``steps[0]``
     steps, then ``resume=true`` to ``steps[1]``. Checks the one run folder, run.json's mode,
     stage and members, each member's finite last ``val/<metric>_member<k>`` and export
     ``members/<name>/<member_file>``, the resume in place and that ``latents.npz`` holds the
-    resumed checkpoint's codes. Returns the run folder, its run.json and that checkpoint."""
+    resumed checkpoint's codes (``codes_key`` of its state). Returns the run folder, its
+    run.json and that checkpoint."""
     out, data = family_dir.parent.parent, family_dir.parent
     proc = run_train(out, data, *args, f"budget.{stage}.steps={steps[0]}", stage=stage)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -342,7 +344,7 @@ def cli_family_run(family_dir: Path, stage: str, args: tuple[str, ...], steps: t
                             stage=stage)
     assert saved["global_step"] == steps[1]
     with np.load(run / "latents.npz") as latents:
-        assert np.array_equal(latents["codes"], saved["state_dict"]["codes"].numpy())
+        assert np.array_equal(latents["codes"], saved["state_dict"][codes_key].numpy())
     return run, info, saved
 
 

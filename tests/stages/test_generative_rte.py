@@ -31,8 +31,9 @@ from nrt.losses.objective import scene_mean
 from nrt.metrics import property_mse
 from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
+from nrt.stages.family import SceneFamily
 from nrt.stages.generative_ea import load_generative_ea
-from nrt.stages.generative_rte import GenerativeRTEModule
+from nrt.stages.rte import RTEStage
 from tests.conftest import (
     GENERATIVE_FAMILY,
     NRT_TRAIN,
@@ -140,12 +141,13 @@ def assert_valid(grids: dict[str, torch.Tensor], resolution: int) -> None:
 
 def test_stage_composes_the_generative_components():
     cfg = compose_config("train", list(STAGE2))
-    assert cfg.model._target_ == "nrt.stages.generative_rte.GenerativeRTEModule"
+    assert cfg.model._target_ == "nrt.stages.rte.RTEStage"
+    assert cfg.model.scenes._target_ == "nrt.stages.family.SceneFamily"
     assert cfg.model.light_field._target_.endswith("LatentSHGridLightField")
     assert cfg.model.medium._target_.endswith("LatentVoxelMedium")
     assert cfg.model.medium.parametrization == "extinction"
-    assert cfg.model.members == cfg.model.light_field.members == K
-    assert cfg.model.latent_dim == cfg.model.medium.latent_dim == 4
+    assert cfg.model.scenes.members == cfg.model.light_field.members == K
+    assert cfg.model.scenes.latent_dim == cfg.model.medium.latent_dim == 4
     assert list(cfg.stage.environments) == [0]
     assert cfg.data._target_ == "nrt.data.datamodule.FamilyRayDataModule"
     check_mode(cfg)
@@ -168,13 +170,13 @@ def test_the_stage_starts_from_the_ea_runs_codes_and_densities(short_ea, family_
     modulation), member k's medium is the EA density under z_k (sigma_t in every channel,
     evaluated independently here with the EA field) with the initial albedo."""
     cfg = stage2_config(family_dir, short_ea)
-    model = hydra.utils.instantiate(cfg.model, _convert_="all")
+    family = hydra.utils.instantiate(cfg.model, _convert_="all").scenes
     _, field, codes, _ = load_generative_ea(str(short_ea))
-    assert torch.equal(model.codes.detach(), codes)
+    assert torch.equal(family.codes.detach(), codes)
     r = cfg.budget.rte.density_resolution
     pts = cell_centres(r, field.bbox).reshape(-1, 3)
     for k in (0, K - 1):
-        grids = model.property_grids_for(codes[k], r)
+        grids = family.property_grids_for(codes[k], r)
         sigma_t = grids["sigma_a"] + grids["sigma_s"]
         rho = field.density(pts, codes[k]).detach().reshape(r, r, r, 1).clamp_min(0)
         assert torch.allclose(sigma_t, rho.expand_as(sigma_t), rtol=1e-5, atol=1e-6)
@@ -195,20 +197,21 @@ def test_validation_logs_every_member_and_the_mean(short):
         assert all(np.isfinite(per_member)), (name, per_member)
         assert metrics[f"val/{name}"] == pytest.approx(np.mean(per_member), rel=1e-5)
     assert metrics["val/psnr"] > metrics["val/psnr_background_only"]
-    model = short["model"]  # the logged MSE is the member's own code's
+    family = short["model"].scenes  # the logged MSE is the member's own code's
     gt = truths(short["dm"])[2]
-    own = property_mse(model.property_grids_for(model.codes[2], gt["g"].shape[0]), gt)
+    own = property_mse(family.property_grids_for(family.codes[2], gt["g"].shape[0]), gt)
     assert metrics["val/mse_sigma_t_x100_member2"] == pytest.approx(float(own["sigma_t"]),
                                                                      rel=1e-4)
 
 
 def test_export_writes_member_grids_and_codes(short, tmp_path):
     model = short["model"]
+    family = model.scenes
     exports = model.export(tmp_path)
     names = [f"family_seed{k}" for k in range(K)]
-    assert model.member_names() == names
+    assert family.member_names() == names
     with np.load(exports["latents"]) as latents:
-        assert np.array_equal(latents["codes"], model.codes.detach().numpy())
+        assert np.array_equal(latents["codes"], family.codes.detach().numpy())
         assert list(latents["names"]) == names and list(latents["seeds"]) == list(range(K))
     for k, name in enumerate(names):
         path = tmp_path / "members" / name / "medium_grids.npz"
@@ -216,7 +219,7 @@ def test_export_writes_member_grids_and_codes(short, tmp_path):
         grids = load_property_grids(path)  # validates layout and finiteness
         assert torch.equal(grids["bbox"], model.medium_bbox())
         assert_valid({k: v for k, v in grids.items() if k != "bbox"}, 32)  # the truth's grid
-        expected = model.property_grids_for(model.codes[k], 32)
+        expected = family.property_grids_for(family.codes[k], 32)
         for key in ("sigma_a", "sigma_s", "g"):
             assert torch.equal(grids[key], expected[key]), key
 
@@ -225,9 +228,10 @@ def test_any_code_decodes_a_valid_medium(short):
     """The contract's ``property_grids_for``: finite, non-negative, |g| < 1, on the CPU and
     without gradient, for codes near the learned ones and far from them."""
     model = short["model"]
+    family = model.scenes
     torch.manual_seed(0)
-    for code in (model.codes[0], torch.zeros(4), torch.randn(4), 30 * torch.randn(4)):
-        assert_valid(model.property_grids_for(code, 12), 12)
+    for code in (family.codes[0], torch.zeros(4), torch.randn(4), 30 * torch.randn(4)):
+        assert_valid(family.property_grids_for(code, 12), 12)
     assert model.property_grids(12) is None  # one medium per member, not one
 
 
@@ -237,22 +241,22 @@ def test_resume_continues_the_codes(short, family_dir, short_ea, tmp_path):
     saved = torch.load(short["ckpt"], weights_only=True, map_location="cpu")
     assert saved["global_step"] == short["cfg"].stage.steps
     start = load_generative_ea(str(short_ea))[2]
-    assert not torch.equal(saved["state_dict"]["codes"], start)  # the codes moved
+    assert not torch.equal(saved["state_dict"]["scenes.codes"], start)  # the codes moved
     resumed = train_stage2(family_dir, short_ea, tmp_path, *SHORT, "budget.rte.steps=26",
                            resume=short["ckpt"])
-    model = resumed["model"]
+    family = resumed["model"].scenes
     groups = resumed["trainer"].optimizers[0].param_groups
-    assert groups[-1]["params"] == [model.codes] and groups[-1]["weight_decay"] == 0.0
-    moved = (model.codes.detach() - saved["state_dict"]["codes"]).norm(dim=-1)
+    assert groups[-1]["params"] == [family.codes] and groups[-1]["weight_decay"] == 0.0
+    moved = (family.codes.detach() - saved["state_dict"]["scenes.codes"]).norm(dim=-1)
     assert 0 < moved.max() < 0.05, moved  # two steps on from the checkpoint's codes
-    loaded = GenerativeRTEModule.load_from_checkpoint(short["ckpt"], map_location="cpu")
-    assert torch.equal(loaded.codes.detach(), saved["state_dict"]["codes"])
+    loaded = RTEStage.load_from_checkpoint(short["ckpt"], map_location="cpu").scenes
+    assert torch.equal(loaded.codes.detach(), saved["state_dict"]["scenes.codes"])
     assert loaded.member_names() == [f"family_seed{k}" for k in range(K)]
 
 
 @pytest.mark.slow
 def test_codes_differ_per_member(trained):
-    codes = trained["model"].codes.detach()
+    codes = trained["model"].scenes.codes.detach()
     start = load_generative_ea(str(trained["ea_ckpt"]))[2]
     gaps = [float((codes[i] - codes[j]).norm()) for i, j in itertools.combinations(range(K), 2)]
     start_gaps = [float((start[i] - start[j]).norm())
@@ -263,12 +267,12 @@ def test_codes_differ_per_member(trained):
     assert float((codes - start).norm(dim=-1).max()) > 1e-3
 
 
-def cross_table(model: GenerativeRTEModule, gts: list[dict]) -> torch.Tensor:
+def cross_table(family: SceneFamily, gts: list[dict]) -> torch.Tensor:
     """sigma_t MSE x100 (K, K) of member i's ground truth against the medium decoded from
     code j (rows i, columns j)."""
     table = torch.zeros(K, K)
     for i, j in itertools.product(range(K), range(K)):
-        grids = model.property_grids_for(model.codes[j], gts[i]["g"].shape[0])
+        grids = family.property_grids_for(family.codes[j], gts[i]["g"].shape[0])
         table[i, j] = property_mse(grids, gts[i])["sigma_t"]
     return table
 
@@ -291,7 +295,7 @@ def test_each_code_reconstructs_its_own_member_best(trained):
     rows' mean ratio for < 0.6 (measured: rows 0.37, 0.75, 0.19, 0.24, mean 0.39; a row
     moving by 0.1 moves the mean by 0.025); the result follows stage 2's convergence on
     each member."""
-    table = cross_table(trained["model"], truths(trained["dm"]))
+    table = cross_table(trained["model"].scenes, truths(trained["dm"]))
     ratios = []
     for i in range(K):
         others = torch.cat((table[i, :i], table[i, i + 1:]))
@@ -355,9 +359,11 @@ def test_cli_trains_stage_2_on_a_family_and_resumes_in_place(family_dir, short_e
             "budget.val_every=10", "budget.val_views=1", "budget.checkpoint_every=10",
             "budget.rte.uncollided_directions=16")
     run, info, saved = cli_family_run(family_dir, "rte", args, (20, 30),
-                                      ("mse_sigma_t_x100", "psnr"), "medium_grids.npz")
+                                      ("mse_sigma_t_x100", "psnr"), "medium_grids.npz",
+                                      codes_key="scenes.codes")
     assert info["ea_ckpt"] == str(short_ea.resolve())
     target = hydra.utils.get_class(OmegaConf.load(run / ".hydra" / "config.yaml").model._target_)
-    module = target.load_from_checkpoint(run / "checkpoints" / "last.ckpt", map_location="cpu")
-    assert module.member_names() == [f"family_seed{k}" for k in range(K)]
-    assert torch.equal(module.codes.detach(), saved["state_dict"]["codes"])
+    family = target.load_from_checkpoint(run / "checkpoints" / "last.ckpt",
+                                         map_location="cpu").scenes
+    assert family.member_names() == [f"family_seed{k}" for k in range(K)]
+    assert torch.equal(family.codes.detach(), saved["state_dict"]["scenes.codes"])

@@ -1,6 +1,6 @@
 """A grid decoder conditioned on a latent code: ``(x, z) -> MLP([f(x), z])``.
 
-The generative stage 2 (:mod:`nrt.stages.generative_rte`) conditions its medium and its
+The generative stage 2 (:mod:`nrt.stages.family`) conditions its medium and its
 light field on a member's latent code z by concatenation (the DeepSDF manner): ``f(x)`` are
 ``features`` channels trilinear on a cell-centred grid over [-1, 1]^3, shared by all codes,
 and a small MLP maps ``[f(x), z]`` to the outputs (the medium's exponents and logits, or the

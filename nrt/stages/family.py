@@ -1,7 +1,8 @@
-"""Stage 2 in generative mode (``nrt-train stage=rte mode=generative scene=family
-init.ea_ckpt=<generative EA run>``): the split formulation of
-:mod:`nrt.stages.rte` over the K members of a scene family, conditioned on one
-latent code per member (the auto-decoder of :mod:`nrt.stages.generative_ea`, continued).
+"""The scene family of generative stage 2 (``nrt-train stage=rte mode=generative
+scene=family init.ea_ckpt=<generative EA run>``): the split stage of :mod:`nrt.stages.rte`
+trained on the K members of a family through :class:`SceneFamily`, its scene source
+(:mod:`nrt.stages.scene_source`), which conditions each member's medium and light on one
+latent code (the auto-decoder of :mod:`nrt.stages.generative_ea`, continued).
 
 - **Codes.** ``codes`` (K, d_z) start from the generative EA run's and stay optimisable
   (their own Adam group, ``latent_lr``, under the L2 prior ``latent_prior_weight * mean_k
@@ -28,16 +29,15 @@ latent code per member (the auto-decoder of :mod:`nrt.stages.generative_ea`, con
 Validation scores each member's held-out views (``val/psnr_member<k>``, by
 :class:`~nrt.callbacks.HeldOutImageMetrics`) and its medium against its own ground truth
 (``val/mse_<property>_x100_member<k>``, by :class:`~nrt.callbacks.PropertyMetrics`), and
-their means. For other tools (``nrt-sample``) the stage decodes a medium from any code
-(:meth:`GenerativeRTEModule.property_grids_for`); the export writes every member's
+their means. For other tools (``nrt-sample``) the family decodes a medium from any code
+(:meth:`SceneFamily.property_grids_for`); the export writes every member's
 ``members/<name>/medium_grids.npz`` and the codes (``latents.npz``).
 """
 
 from __future__ import annotations
 
-import logging
-from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
@@ -47,49 +47,51 @@ from nrt.errors import ConfigError, DatasetError
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.physics.volume import at_cell_centres
-from nrt.stages.components import as_factory, factory_config, objective_components
+from nrt.stages.components import factory_config
 from nrt.stages.ea import build_density_field, density_field_factory
 from nrt.stages.generative_ea import MEMBERS_DIR, load_generative_ea, save_latents
-from nrt.stages.rte import RTEStage
-from nrt.stages.stage import check_learning_rates
+from nrt.stages.stage import check_learning_rates, grid_resolution
 
-log = logging.getLogger(__name__)
+if TYPE_CHECKING:
+    from nrt.stages.rte import RTEStage
 
 FITS = ("Generative stage 2 (stage=rte mode=generative) takes the latent light field and "
         "medium that conf/mode_stage/generative_rte.yaml sets")
 
 
-class GenerativeRTEModule(RTEStage):
-    """The split stage 2 over the ``members`` (K) of a family, conditioned on codes of
-    ``latent_dim`` (d_z) values. ``ea_field`` (the EA run's density-field config; before
-    it was a component, the ``EAField``'s keywords) and ``member_info``
-    (``name``, ``seed`` of each member) come from the EA checkpoint (``density.ea_ckpt``)
-    when the run starts, and from the stage's own checkpoint when it is loaded; the rest of
-    the arguments are :class:`~nrt.stages.rte.RTEStage`'s."""
+class SceneFamily(nn.Module):
+    """The ``members`` (K) of a family as the ``stage``'s (medium, light) pairs, conditioned
+    on codes of ``latent_dim`` (d_z) values: member k's medium is the stage's latent medium
+    over the frozen EA field's density, both under z_k; its light is the stage's latent
+    light field under z_k. ``ea_field`` (the EA run's density-field config) and
+    ``member_info`` (``name``, ``seed`` of each member) come from the EA checkpoint (the
+    stage's ``density.ea_ckpt``) when the run starts, and from the stage's checkpoint when
+    it is loaded (:meth:`settings`). The module holds the frozen field ``ea`` and the codes;
+    the light field and the medium stay the stage's (its state holds them)."""
 
     LIGHT_PROTOCOL = LatentScatteredLightField
     MEDIUM_PROTOCOL = LatentVoxelisedMedium
     FITS = FITS
 
-    def __init__(self, members: int, latent_dim: int, light_field: Callable | dict,
-                 medium: Callable | dict, latent_prior_weight: float = 1e-4,
-                 latent_lr: float = 1e-2, ea_field: dict | None = None,
-                 member_info: list[dict] | None = None, **kwargs):
+    def __init__(self, stage: RTEStage, members: int, latent_dim: int,
+                 latent_prior_weight: float = 1e-4, latent_lr: float = 1e-2,
+                 ea_field: dict | None = None, member_info: list[dict] | None = None):
+        super().__init__()
         for key, value in (("scene.family.members", members), ("mode.latent.dim", latent_dim)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"{key}={value}: must be a whole number >= 1.")
         check_learning_rates(latent_lr, "model.latent_lr")
-        density = kwargs.get("density") or {}
+        density = stage.hparams.density
         if density.get("source") != "ea":
             raise ConfigError(f"init.source={density.get('source')}: stage 2 in generative mode "
                               "starts from a generative EA run (init=ea, init.ea_ckpt=<its "
                               "checkpoints/last.ckpt>); forward mode and init=none are for "
                               "single scenes.")
-        # the hyperparameters record the components' configs: a checkpoint pickles no code
-        light_field = factory_config(as_factory(light_field, "light_field"))
-        medium = factory_config(as_factory(medium, "medium"))
-        _, kwargs["objectives"] = objective_components(kwargs.get("objectives"))
-        super().__init__(light_field=light_field, medium=medium, **kwargs)
+        self.latent_prior_weight = latent_prior_weight
+        self.latent_lr = latent_lr
+        # the stage registers (and checkpoints) these two; a tuple keeps them out of this
+        # module's own registry
+        self._fields: tuple[Any, Any] = (stage.light, stage.medium)
         if ea_field is None:  # a fresh run: the EA run's field, codes and members
             ea_field, field, codes, info = load_generative_ea(density.get("ea_ckpt"))
             if tuple(codes.shape) != (members, latent_dim):
@@ -100,45 +102,59 @@ class GenerativeRTEModule(RTEStage):
                     "same family and mode settings.")
             member_info = None if info is None else \
                 [{"name": str(m["name"]), "seed": int(m["seed"])} for m in info]
-            self.hparams.update(ea_field=ea_field, member_info=member_info)
-        else:  # loaded from this stage's checkpoint: the values follow
+        else:  # loaded from the stage's checkpoint: the values follow
             field = build_density_field(density_field_factory(ea_field), latent_dim)
             codes = torch.zeros(members, latent_dim)
+        self.ea_field = factory_config(density_field_factory(ea_field))  # a config, no code
+        self.member_info = member_info
         self.ea = field.requires_grad_(False)
         self._encoding: torch.Tensor | None = None
+        self._ground_truths: list[dict[str, torch.Tensor] | None] = []
         self.codes = nn.Parameter(codes.clone())
+
+    @property
+    def light(self) -> LatentScatteredLightField:
+        """The stage's latent light field."""
+        return self._fields[0]
+
+    @property
+    def medium(self) -> LatentVoxelisedMedium:
+        """The stage's latent medium."""
+        return self._fields[1]
 
     # ------------------------------------------------------------- the family
     def member_names(self) -> list[str]:
         """The members' scene names, in the order of ``codes``' rows (``member<k>`` before a
         run whose EA run recorded none has seen its family)."""
-        info = self.hparams.member_info
+        info = self.member_info
         return [m["name"] for m in info] if info else \
             [f"member{k}" for k in range(self.codes.shape[0])]
 
     def member_seeds(self) -> list[int]:
-        info = self.hparams.member_info
+        info = self.member_info
         return [int(m["seed"]) for m in info] if info else list(range(self.codes.shape[0]))
 
-    def setup(self, stage: str) -> None:
-        dm = self.datamodule()
-        if dm is not None:
-            names = [m.name for m in dm.family.members]
-            if self.hparams.member_info is None and len(names) == self.codes.shape[0]:
-                self.hparams.member_info = [{"name": m.name, "seed": m.seed}
-                                            for m in dm.family.members]
-            if names != self.member_names():
-                raise DatasetError(f"Family '{dm.dataset_dir}' has members {names}, but the "
-                                   f"EA run this stage starts from was trained on "
-                                   f"{self.member_names()}; train both stages on one family.")
-            self.ea.bbox.copy_(dm.bbox.to(self.ea.bbox))
-        super().setup(stage)
+    def setup(self, datamodule) -> None:
+        """Check the datamodule's family against the members, take its names and seeds if
+        the EA run recorded none, and compute the EA features anew in its box."""
+        names = [m.name for m in datamodule.family.members]
+        if self.member_info is None and len(names) == self.codes.shape[0]:
+            self.member_info = [{"name": m.name, "seed": m.seed}
+                                for m in datamodule.family.members]
+        if names != self.member_names():
+            raise DatasetError(f"Family '{datamodule.dataset_dir}' has members {names}, but the "
+                               f"EA run this stage starts from was trained on "
+                               f"{self.member_names()}; train both stages on one family.")
+        self.ea.bbox.copy_(datamodule.bbox.to(self.ea.bbox))
+        self._ground_truths = datamodule.member_ground_truths
         self._encoding = None  # at the box the datamodule set
 
-    def bake_density(self) -> None:
-        """Forget the EA features at the medium's cells (:meth:`ea_encoding` computes them
-        again for the box the datamodule set)."""
-        self._encoding = None
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        """Nothing to do: the codes and the EA field come with the state."""
+
+    def settings(self) -> dict:
+        """The EA run's field config and the members, which rebuild the family."""
+        return {"ea_field": self.ea_field, "member_info": self.member_info}
 
     def ea_encoding(self) -> torch.Tensor:
         """The frozen EA field's hash features (R^3, F) at the centres of the medium's
@@ -161,54 +177,44 @@ class GenerativeRTEModule(RTEStage):
         code = self.codes[member]
         return self.medium.voxels_for(self.density_for(code), code)
 
-    def member_scene(self, member: int):
+    def member_scene(self, member: int) -> tuple[Any, Any]:
         """Member ``member``'s medium (:meth:`member_medium`) and light (the code without
         gradient: the light field does not move the codes)."""
         return (self.member_medium(member),
                 self.light.member(member, self.codes[member].detach()))
 
+    # ------------------------------------------------------------- the pairs
+    def pairs(self) -> list[tuple[Any, Any]]:
+        """Every member's (medium, light), in the order of ``codes``' rows."""
+        return [self.member_scene(k) for k in range(self.codes.shape[0])]
+
+    def scene_of(self, batch: dict) -> torch.Tensor:
+        """Each ray's member (``member``)."""
+        return batch["member"]
+
+    def view_pair(self, batch: dict) -> tuple[Any, Any]:
+        """The view's member's medium and light (``member``)."""
+        return self.member_scene(int(batch["member"]))
+
     def fresh_voxels(self) -> list:
-        """Every member's medium composed anew (see the split stage's); their lights are
-        not decoded."""
+        """Every member's medium composed anew; their lights are not decoded."""
         return [self.member_medium(k) for k in range(self.codes.shape[0])]
 
     # --------------------------------------------------------------- training
+    def priors(self) -> dict[str, torch.Tensor]:
+        """``latent_prior``: ``latent_prior_weight * mean_k |z_k|^2``, the codes' Gaussian
+        prior, beside their data term (the photos)."""
+        return {"latent_prior": self.latent_prior_weight * self.codes.square().sum(-1).mean()}
+
+    def step_metrics(self) -> dict[str, torch.Tensor]:
+        """``latent_norm``: the codes' mean norm."""
+        return {"latent_norm": self.codes.detach().norm(dim=-1).mean()}
+
     def param_groups(self) -> list[dict]:
-        return [*super().param_groups(),
-                {"params": [self.codes], "lr": self.hparams.latent_lr, "weight_decay": 0.0}]
+        """The codes at ``latent_lr``, without weight decay (the prior is their regulariser)."""
+        return [{"params": [self.codes], "lr": self.latent_lr, "weight_decay": 0.0}]
 
-    def latent_prior(self) -> torch.Tensor:
-        """``latent_prior_weight * mean_k |z_k|^2``: the codes' Gaussian prior, as a loss."""
-        return self.hparams.latent_prior_weight * self.codes.square().sum(-1).mean()
-
-    def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
-        opt = self.optimizers()
-        self._update_resolution()
-        scenes = [self.member_scene(k) for k in range(self.codes.shape[0])]
-        self.refresh_uncollided(scenes)
-        opt.zero_grad(set_to_none=True)
-        total = self.backward_objectives({**batch, "scene": batch["member"]},
-                                         self.step_context(scenes))
-        prior = self.latent_prior()
-        if any(self.objectives[name].medium_only for name in self.active_weights()):
-            # the codes' regulariser, with their data term (the photos)
-            self.manual_backward(prior)
-            total = total + prior.detach()
-        self.log("train/latent_prior", prior.detach())
-        self.log("train/latent_norm", self.codes.detach().norm(dim=-1).mean())
-        self.log("train/medium_resolution", float(self.medium.resolution))
-        opt.step()
-        self.lr_schedulers().step()
-        return torch.as_tensor(total)
-
-    # ------------------------------------------------------------- validation
-    def predict_view(self, batch: dict) -> dict[str, torch.Tensor]:
-        """The predictions of a member's held-out view through its own medium and light."""
-        with torch.no_grad():
-            medium, light = self.member_scene(int(batch["member"]))
-            return self.render_pixels(batch["origins"], batch["dirs"], batch["background"],
-                                      medium, light)
-
+    # ------------------------------------------------------- grids and export
     @torch.no_grad()
     def property_grids_for(self, code: torch.Tensor, resolution: int
                            ) -> dict[str, torch.Tensor]:
@@ -228,18 +234,16 @@ class GenerativeRTEModule(RTEStage):
         """None: a family has one medium per member (:meth:`member_property_grids`)."""
         return None
 
-    def member_ground_truths(self) -> list[dict[str, torch.Tensor] | None]:
-        dm = self.datamodule()
-        return dm.member_ground_truths if dm is not None else []
+    def medium_bbox(self) -> torch.Tensor:
+        """The box (2, 3) of every member's medium."""
+        return self.medium.bbox
 
-    # ------------------------------------------------------------------ export
-    def export(self, run_dir: str | Path) -> dict[str, str]:
-        """Write ``members/<name>/medium_grids.npz`` for every member (at
-        ``property_resolution``, default its ground truth's, else 64) and ``latents.npz``
-        (``codes``, ``names``, ``seeds``) into ``run_dir``."""
+    def export(self, run_dir: Path, resolution: int | None) -> dict[str, str]:
+        """Write ``members/<name>/medium_grids.npz`` for every member (at ``resolution``,
+        default its ground truth's, else 64) and ``latents.npz`` (``codes``, ``names``,
+        ``seeds``) into ``run_dir``."""
         run_dir = Path(run_dir)
-        res = self.grid_resolution(self.hparams.property_resolution, 64,
-                                   self.member_ground_truths())
+        res = grid_resolution(resolution, 64, self._ground_truths)
         exports = {}
         for k, name in enumerate(self.member_names()):
             path = run_dir / MEMBERS_DIR / name / MEDIUM_GRIDS_FILE
