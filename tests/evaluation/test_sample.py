@@ -38,7 +38,7 @@ from nrt.evaluation.sample import (
     white_of,
 )
 from nrt.weights import FID_FILE, weights_dir
-from tests.conftest import GENERATIVE_FAMILY, SMALL_FAMILY, compose_config
+from tests.conftest import GENERATIVE_FAMILY, SMALL_FAMILY, cli_in_process, compose_config
 
 pytestmark = pytest.mark.integration
 
@@ -272,18 +272,13 @@ def test_fid_columns_with_the_real_weights(family_data, tmp_path):
 
 
 # ------------------------------------------------------------------ the command's errors
-def run_sample(tmp: Path, monkeypatch, capsys, *overrides: str, env: dict | None = None
-               ) -> tuple[int, str]:
-    """``nrt-sample`` in this process (its CLI entry point, Hydra and all; a subprocess
-    would spend most of its time importing): exit status and stderr."""
-    from nrt.cli.sample import main
-
-    for key, value in {"NRT_OUTPUT_DIR": str(tmp / "outputs"), **(env or {})}.items():
-        monkeypatch.setenv(key, value)
-    monkeypatch.setattr(sys, "argv", ["nrt-sample", *overrides])
-    with pytest.raises(SystemExit) as exit_info:
-        main()
-    return exit_info.value.code, capsys.readouterr().err
+def run_sample(tmp: Path, *overrides: str, env: dict | None = None) -> tuple[int, str]:
+    """``nrt-sample`` in this process (:func:`~tests.conftest.cli_in_process`: its CLI entry
+    point, Hydra and all; a subprocess would spend most of its time importing): exit status
+    and stderr."""
+    proc = cli_in_process("sample", *overrides,
+                          env={"NRT_OUTPUT_DIR": str(tmp / "outputs"), **(env or {})})
+    return proc.returncode, proc.stderr
 
 
 def fake_run(folder: Path, info: dict, overrides: tuple[str, ...] = ()) -> Path:
@@ -296,7 +291,7 @@ def fake_run(folder: Path, info: dict, overrides: tuple[str, ...] = ()) -> Path:
 
 
 @pytest.mark.parametrize("case", ["missing", "not_a_run", "single", "generative_ea", "n0"])
-def test_errors_exit_2_with_one_paragraph(tmp_path, monkeypatch, capsys, case):
+def test_errors_exit_2_with_one_paragraph(tmp_path, case):
     family = {"mode": "generative", "family_dir": str(tmp_path / "family"), "scene": "family",
               "environments": ["sky0"], "members": []}
     runs = {
@@ -310,22 +305,21 @@ def test_errors_exit_2_with_one_paragraph(tmp_path, monkeypatch, capsys, case):
                           "stage=rte mode=generative scene=family init.ea_ckpt="),
     }
     run, needle = runs.get(case, (tmp_path, "n=0"))
-    code, err = run_sample(tmp_path, monkeypatch, capsys, f"run={run}",
+    code, err = run_sample(tmp_path, f"run={run}",
                            *(["n=0"] if case == "n0" else []))
     assert code == 2 and "nrt: error:" in err and needle in err, err[-2000:]
     assert "Traceback" not in err
     assert not list(tmp_path.glob("**/sample/*")), "a failed start left a folder behind"
 
 
-def test_missing_fid_weights_name_the_file_and_nrt_weights(family_data, tmp_path, monkeypatch,
-                                                           capsys):
+def test_missing_fid_weights_name_the_file_and_nrt_weights(family_data, tmp_path):
     """A generative stage-2 run folder over the test family, with the weights folder
     pointed at an empty one: refused before any model is loaded or medium rendered."""
     family = {"stage": "rte", "mode": "generative", "scene": "family",
               "family_dir": str(family_data.family.root), "environments": ["sky0"]}
     run = fake_run(tmp_path / "gen_rte", family, ("scene=family", "mode=generative"))
     empty = tmp_path / "no_weights"
-    code, err = run_sample(tmp_path, monkeypatch, capsys, f"run={run}",
+    code, err = run_sample(tmp_path, f"run={run}",
                            env={"NRT_WEIGHTS_DIR": str(empty)})
     assert code == 2 and "nrt: error:" in err and "nrt-weights" in err, err[-2000:]
     assert str(empty / FID_FILE) in err and "fid.enabled=false" in err
