@@ -208,6 +208,22 @@ def train_in_process(out: Path, data_root: Path, *overrides: str, stage: str = "
     return cli_in_process("train", *cmd[len(NRT_TRAIN):], env={"NRT_OUTPUT_DIR": str(out)})
 
 
+def multirun_command(out: Path, data_root: Path, *overrides: str, stage: str = "ea"
+                     ) -> tuple[list[str], dict]:
+    """:func:`train_command` as a sweep: ``nrt-train -m ...``."""
+    cmd, env = train_command(out, data_root, *overrides, stage=stage)
+    return [*cmd[:3], "-m", *cmd[3:]], env
+
+
+def multirun(out: Path, data_root: Path, *overrides: str, env: dict | None = None
+             ) -> subprocess.CompletedProcess:
+    """``nrt-train -m stage=ea preset=tiny ...`` (:func:`multirun_command`), finished;
+    ``env``: variables added to its environment."""
+    cmd, base = multirun_command(out, data_root, *overrides)
+    return subprocess.run(cmd, env={**base, **(env or {})}, capture_output=True, text=True,
+                          timeout=600)
+
+
 def refusal(returncode: int, stderr: str) -> str:
     """The one ``nrt: error:`` line of a command that refused its input as a user error:
     status 2, one such line, no traceback."""
