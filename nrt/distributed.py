@@ -155,7 +155,8 @@ def child_command(rank: int, pinned: Mapping[str, object]) -> tuple[list[str], s
     task = [str(o) for o in hydra_cfg.overrides.task
             if str(o).split("=", 1)[0].lstrip("+~") not in pinned]
     command = [sys.executable, "-m", TRAIN_MODULE, *task,
-               *(f"{key}={_quoted(value)}" for key, value in pinned.items()),
+               *(f"{key}={_quoted(value) if isinstance(value, str) else value}"
+                 for key, value in pinned.items()),
                f"hydra.run.dir={_quoted(hydra_cfg.runtime.output_dir)}",
                "hydra.output_subdir=null", f"hydra.job.name={hydra_cfg.job.name}_rank{rank}"]
     return command, str(hydra_cfg.runtime.cwd)
@@ -242,12 +243,12 @@ class GradientAveraging(DDPStrategy):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
-        self.pinned: dict[str, str] = {}
+        self.pinned: dict[str, object] = {}
 
     def pin(self, **overrides: object) -> None:
-        """Overrides that ranks > 0 start with (``resume``, ``init.ea_ckpt``: rank 0's
-        answers); None values are left out."""
-        self.pinned.update({k: str(v) for k, v in overrides.items() if v is not None})
+        """Overrides that ranks > 0 start with (``resume``, ``init.ea_ckpt``, ``threads``:
+        rank 0's answers; a string, a number); None values are left out."""
+        self.pinned.update({k: v for k, v in overrides.items() if v is not None})
 
     def _configure_launcher(self) -> None:
         if self._start_method != "popen":

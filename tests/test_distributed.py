@@ -131,15 +131,16 @@ def test_a_rank_starts_as_the_job_with_rank_0s_folder_and_files(hydra_job):
     """The job's overrides (not rank 0's command line), rank 0's answers in place of the
     user's, rank 0's folder; no config copy; a log of its own. The overrides parse back to
     the same values, paths with ``=`` and ``,`` included."""
-    pinned = {"init.ea_ckpt": "/runs/ea=1/last.ckpt", "resume": "/runs/x,y/last.ckpt"}
+    pinned = {"init.ea_ckpt": "/runs/ea=1/last.ckpt", "resume": "/runs/x,y/last.ckpt",
+              "threads": 1}
     command, cwd = child_command(1, pinned)
     assert command[:3] == [sys.executable, "-m", "nrt.cli.train"] and cwd == str(hydra_job)
     parsed = {o.key_or_group: o.value() for o in OverridesParser.create().parse_overrides(
         command[3:])}
     assert parsed == {"preset": "tiny", "trainer": "ddp_cpu", "budget.ea.steps": 5,
                       "init.ea_ckpt": "/runs/ea=1/last.ckpt", "resume": "/runs/x,y/last.ckpt",
-                      "hydra.run.dir": str(hydra_job / "a=b,c"), "hydra.output_subdir": None,
-                      "hydra.job.name": "common_rank1"}
+                      "threads": 1, "hydra.run.dir": str(hydra_job / "a=b,c"),
+                      "hydra.output_subdir": None, "hydra.job.name": "common_rank1"}
 
 
 def rank(rank: int, world: int = 2, **more) -> SimpleNamespace:

@@ -114,20 +114,22 @@ def save_config(cfg: DictConfig, run_dir: Path) -> None:
                           "the run's config")
 
 
-def set_threads(cfg: DictConfig) -> None:
+def set_threads(cfg: DictConfig) -> int | None:
     """Torch threads of this process from the ``threads`` key
     (:func:`nrt.distributed.job_threads`: in a sweep, a joblib launcher's ``n_jobs`` share
-    the cores)."""
+    the cores); the count set, None where torch keeps its default."""
     from nrt import distributed
 
     hydra_cfg = HydraConfig.get()
-    launcher = OmegaConf.to_container(hydra_cfg.launcher, resolve=True) \
-        if hydra_cfg.mode == RunMode.MULTIRUN else None
+    multirun = hydra_cfg.mode == RunMode.MULTIRUN
+    launcher = {key: OmegaConf.select(hydra_cfg, f"launcher.{key}") if multirun else None
+                for key in ("n_jobs", "cpus_per_task")}
     nodes = int(OmegaConf.select(cfg, "trainer.num_nodes") or 1)
     threads = distributed.job_threads(cfg.threads, launcher, max(1, processes(cfg) // nodes),
                                       distributed.usable_cores())
     if threads is not None:
         distributed.use_threads(threads)
+    return threads
 
 
 def train_task(cfg: DictConfig) -> dict:
@@ -139,7 +141,7 @@ def train_task(cfg: DictConfig) -> dict:
 
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     lead = distributed.is_rank_zero()  # rank 0 (or the only process) decides and writes
-    set_threads(cfg)
+    threads = set_threads(cfg)
     L.seed_everything(cfg.seed, workers=True)  # a seed run_app checked (nrt.cli.checks)
     # What the config alone decides is refused before any rendering or data loading:
     # counts no run can use, a dataset cache that cannot take files, a missing EA run or
@@ -174,7 +176,8 @@ def train_task(cfg: DictConfig) -> dict:
                        **({"ea_ckpt": ea_ckpt} if ea_ckpt is not None else {}))
     loggers = [hydra.utils.instantiate(lg) for lg in cfg.logger.values()]
     trainer = hydra.utils.instantiate(cfg.trainer, callbacks=callbacks, logger=loggers)
-    distributed.pin_for_ranks(trainer, resume=ckpt, **{"init.ea_ckpt": ea_ckpt})
+    distributed.pin_for_ranks(trainer, resume=ckpt, threads=threads,
+                              **{"init.ea_ckpt": ea_ckpt})
     log.info("Run folder %s; dataset %s%s", run_dir, dataset_dir,
              f"; resuming from {ckpt}" if ckpt else "")
     with distributed.training_processes():
