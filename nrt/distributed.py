@@ -112,13 +112,15 @@ def usable_cores() -> int:
 def job_threads(threads: int | None, launcher: Mapping | None, processes: int,
                 cores: int) -> int | None:
     """Torch threads for each process of a job (the ``threads`` key): ``threads`` when
-    given; else the ``cores`` (at most a submitit launcher's ``cpus_per_task``) shared among
+    given; else the ``cores`` (at most a submitit launcher's ``cpus_per_task``, which are
+    each task's: a SLURM task of ``tasks_per_node`` is a process of its own) shared among
     the jobs a joblib launcher runs at once (``n_jobs``; -1: one per core) and the run's
     ``processes`` on this machine; None (torch's default) for a lone one-process run."""
     if threads is not None:
         return int(threads)
     launcher = launcher or {}
     jobs, cpus = launcher.get("n_jobs"), launcher.get("cpus_per_task")
+    processes = max(1, processes // int(launcher.get("tasks_per_node") or 1))
     if not isinstance(jobs, int) or jobs == 0:
         jobs = 1
     elif jobs < 0:  # joblib's -1: as many as cores, -2: one fewer ...

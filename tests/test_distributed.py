@@ -104,6 +104,8 @@ def test_process_count_reads_devices_nodes_and_strategy():
     (None, {"n_jobs": -1}, 1, 4, 1),            # joblib's -1: a job per core
     (None, None, 2, 2, 1),                      # trainer=ddp_cpu on 2 cores
     (None, {"cpus_per_task": 1}, 1, 8, 1),      # submitit's cpus per job
+    (None, {"cpus_per_task": 8, "tasks_per_node": 4}, 4, 64, 8),  # a SLURM task per rank
+    (None, {"cpus_per_task": 8, "tasks_per_node": 1}, 2, 64, 4),  # Lightning starts 2
 ])
 def test_a_job_gets_its_share_of_the_cores(threads, launcher, processes, cores, expected):
     assert job_threads(threads, launcher, processes, cores) == expected

@@ -123,7 +123,7 @@ def set_threads(cfg: DictConfig) -> int | None:
     hydra_cfg = HydraConfig.get()
     multirun = hydra_cfg.mode == RunMode.MULTIRUN
     launcher = {key: OmegaConf.select(hydra_cfg, f"launcher.{key}") if multirun else None
-                for key in ("n_jobs", "cpus_per_task")}
+                for key in ("n_jobs", "cpus_per_task", "tasks_per_node")}
     nodes = int(OmegaConf.select(cfg, "trainer.num_nodes") or 1)
     threads = distributed.job_threads(cfg.threads, launcher, max(1, processes(cfg) // nodes),
                                       distributed.usable_cores())
