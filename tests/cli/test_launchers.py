@@ -8,16 +8,14 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
 import torch
 
 from nrt.run_dirs import LAST_CKPT, RUN_FILE, SWEEP_ENV, SWEEP_FILE
-from tests.conftest import multirun, multirun_command
+from tests.conftest import kill_after_checkpoint, multirun, multirun_command
 
 pytestmark = pytest.mark.e2e
 
@@ -29,14 +27,15 @@ SWEEP = ("budget.ea.steps=20", "seed=0,1", "budget.val_every=10", "budget.checkp
 @pytest.mark.parametrize(("plugin", "launcher", "threads"), [
     ("hydra_joblib_launcher", ("hydra/launcher=joblib", "hydra.launcher.n_jobs=2"),
      max(1, CORES // 2)),
+    ("hydra_joblib_launcher", ("hydra/launcher=nrt_joblib",), max(1, CORES // 2)),  # NRT_JOBS: 2
     ("hydra_submitit_launcher", ("hydra/launcher=submitit_local",
                                  "hydra.launcher.cpus_per_task=1",
                                  "hydra.launcher.timeout_min=10"), 1),
-], ids=["joblib", "submitit_local"])
+], ids=["joblib", "nrt_joblib", "submitit_local"])
 def test_a_sweep_runs_its_jobs_in_processes_of_their_own(tmp_path, tiny_dataset, plugin,
                                                          launcher, threads):
     pytest.importorskip(f"hydra_plugins.{plugin}")
-    proc = multirun(tmp_path, tiny_dataset.parent, *SWEEP, *launcher)
+    proc = multirun(tmp_path, tiny_dataset.parent, *SWEEP, *launcher, env={"NRT_JOBS": "2"})
     assert proc.returncode == 0, proc.stderr[-3000:]
     (sweep,) = (tmp_path / "multirun").iterdir()  # one sweep folder for all jobs
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and not p.name.startswith("."))
@@ -61,17 +60,7 @@ def killed_sweep(out: Path, data_root: Path, env: dict) -> tuple[Path, Path]:
     cmd, base = multirun_command(out, data_root, *KILLED)
     proc = subprocess.Popen(cmd, env={**base, **env}, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
-    try:
-        deadline, saved = time.time() + 300, None
-        while saved is None and time.time() < deadline:
-            for last in out.glob(f"multirun/*/1/{LAST_CKPT}"):
-                step = torch.load(last, weights_only=False, map_location="cpu")["global_step"]
-                saved = step if 10 <= step < 200 else None
-            time.sleep(0.05)
-        assert saved is not None, "the long job saved no checkpoint before its end"
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+    kill_after_checkpoint(proc, out, f"multirun/*/1/{LAST_CKPT}", 10, 200)
     (sweep,) = (out / "multirun").iterdir()
     done, killed = sweep / "0", sweep / "1"
     assert json.loads((done / RUN_FILE).read_text())["finished_step"] == 20
