@@ -82,7 +82,7 @@ def test_resume_in_two_processes_continues_in_the_same_folder(tmp_path, tiny_dat
     assert "nothing to continue" in again.stdout + again.stderr
 
 
-@pytest.mark.slow  # the session's EA run, then 20 stage-2 steps in two processes (~60 s)
+@pytest.mark.slow  # the tiny EA run (tiny_ea_run), then 20 stage-2 steps in two processes (~60 s)
 def test_stage_2_in_two_processes_from_the_ea_run(tmp_path, tiny_ea_run):
     """Stage 2 starts every rank from the EA run that rank 0 resolved, keeps the ranks in
     step through its light warm-up (no medium gradient) and two doublings of its grid,
