@@ -35,6 +35,7 @@ from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from unittest import mock
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from lightning.pytorch.strategies import DDPStrategy
@@ -44,8 +45,9 @@ TRAIN_MODULE = "nrt.cli.train"
 """What ranks > 0 run, whatever started rank 0 (the console script, ``python -m``, a
 launcher's worker)."""
 
-SEED_STRIDE = 2**32
-"""Rank r's seeds lie r strides above the run's: beyond every seed a run can have."""
+SEED_BITS = 32
+"""Bits of a rank's seed: torch's CPU generator (a Mersenne twister) keeps the low 32 bits of
+the seed it is given, so seeds that differ above them draw the same numbers."""
 
 UNSYNCED = ("time/", "memory/")
 """Metrics that are rank 0's own (clocks, timings, memory), not means over the ranks."""
@@ -69,10 +71,14 @@ def is_rank_zero() -> bool:
 
 def rank_seed(seed: int, rank: int) -> int:
     """The seed of rank ``rank``'s random draws in a run of seed ``seed``: ``seed`` on rank 0
-    (a one-process run draws what rank 0 draws), ``seed + rank 2^32`` on rank r, beyond the
-    seeds a run can have (``nrt.cli.checks.SEEDS``), so no rank repeats another's draws or
-    another run's."""
-    return int(seed) + int(rank) * SEED_STRIDE
+    (a one-process run draws what rank 0 draws); on rank r > 0 a 32-bit seed that NumPy's
+    ``SeedSequence`` mixes from ``(seed, r)``, so that no rank repeats another's draws and
+    rank r of one run is not rank 0 of a neighbouring seed. 32 bits, because torch's CPU
+    generator ignores the bits above them (``seed + r 2^32`` would draw rank 0's numbers)."""
+    if int(rank) == 0:
+        return int(seed)
+    mixed = np.random.SeedSequence(int(seed), spawn_key=(int(rank),))
+    return int(mixed.generate_state(1, np.uint32)[0])
 
 
 def synced(name: str) -> bool:

@@ -37,11 +37,16 @@ from tests.conftest import compose_config
 pytestmark = pytest.mark.unit
 
 
-def test_rank_0_keeps_the_seed_and_the_others_leave_every_seed_behind():
-    assert rank_seed(7, 0) == 7
-    seeds = [rank_seed(s, r) for s in (0, 7, SEEDS - 1) for r in range(4)]
+def test_rank_0_keeps_the_seed_and_every_rank_draws_its_own_numbers():
+    """Rank 0 keeps the run's seed; the others get seeds that torch's CPU generator tells
+    apart (it keeps 32 bits), of no other rank of the first seeds and no neighbouring run."""
+    assert rank_seed(7, 0) == 7 and rank_seed(7, 1) == rank_seed(7, 1)
+    seeds = [rank_seed(s, r) for s in (*range(64), SEEDS - 1) for r in range(4)]
+    assert all(0 <= s < SEEDS for s in seeds)
     assert len(set(seeds)) == len(seeds)  # no two (seed, rank) share a stream
-    assert all(rank_seed(s, r) >= SEEDS for s in (0, SEEDS - 1) for r in (1, 3))
+    first = {torch.rand(1, generator=torch.Generator().manual_seed(rank_seed(7, r))).item()
+             for r in range(4)}
+    assert len(first) == 4
 
 
 def views() -> SceneDataset:
