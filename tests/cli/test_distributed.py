@@ -83,7 +83,7 @@ def test_resume_in_two_processes_continues_in_the_same_folder(tmp_path, tiny_dat
 
 
 @pytest.mark.slow  # the tiny EA run (tiny_ea_run), then 20 stage-2 steps in two processes (~60 s)
-def test_stage_2_in_two_processes_from_the_ea_run(tmp_path, tiny_ea_run):
+def test_stage_2_in_two_processes_from_the_ea_run(tmp_path, tiny_ea_run, tiny_dataset):
     """Stage 2 starts every rank from the EA run that rank 0 resolved, keeps the ranks in
     step through its light warm-up (no medium gradient) and two doublings of its grid,
     and rank 0 alone measures and exports the medium."""
@@ -92,7 +92,7 @@ def test_stage_2_in_two_processes_from_the_ea_run(tmp_path, tiny_ea_run):
     ea_run = only_run_dir(ea_out, "ea")
     (tmp_path / "default" / "ea").mkdir(parents=True)
     (tmp_path / "default" / "ea" / ea_run.name).symlink_to(ea_run)  # the scene's EA run
-    proc = run_train(tmp_path, ea_out / "datasets", *DDP, "budget.rte.steps=20", stage="rte")
+    proc = run_train(tmp_path, tiny_dataset.parent, *DDP, "budget.rte.steps=20", stage="rte")
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = only_run_dir(tmp_path, "rte")
     info = in_step(run, 20)
