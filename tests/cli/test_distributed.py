@@ -3,7 +3,7 @@ rank 0 writes (run.json once, with both ranks' records, checkpoints, exports, th
 rank 1 adds its log alone), the ranks end in step (the same parameters), ``resume=true``
 continues in the same folder and a finished run resumed again is left alone, stage 2
 trains from an EA run with its grids doubling, a sweep runs a job in two processes after
-another, and the baseline is refused."""
+another, and the baseline is refused; ``trainer=ddp`` does the same on two GPUs."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ CORES = len(os.sched_getaffinity(0))
 def in_step(run: Path, steps: int) -> dict:
     """``run.json`` of a finished run in two processes: both ranks' records, from two
     processes, at ``steps`` steps with the same parameters (the gradients were averaged)
-    on their share of the cores; rank 1 wrote its log and no config copy."""
+    on their share of the cores; rank 1 wrote its log."""
     info = json.loads((run / RUN_FILE).read_text())
     ranks = info["ranks"]
     assert info["world_size"] == 2 and [r["rank"] for r in ranks] == [0, 1], info
@@ -47,30 +47,39 @@ def in_step(run: Path, steps: int) -> dict:
     return info
 
 
-@pytest.mark.slow  # two processes, 30 EA steps (~30 s)
-def test_ea_in_two_processes_is_one_run_that_rank_0_writes(tmp_path, tiny_dataset):
-    proc = run_train(tmp_path, tiny_dataset.parent, *DDP, "budget.ea.steps=30")
+@pytest.mark.gpu
+@pytest.mark.slow  # two GPU processes, 30 EA steps
+def test_ea_on_two_gpus_is_one_run_in_step(tmp_path, tiny_dataset):
+    """``trainer=ddp`` (NCCL, one process per GPU): one run folder that rank 0 writes, the
+    ranks in step, each on its own GPU."""
+    if torch.cuda.device_count() < 2:
+        pytest.skip("needs 2 CUDA devices")
+    proc = run_train(tmp_path, tiny_dataset.parent, "trainer=ddp", "trainer.devices=2",
+                     *DDP[1:], "budget.ea.steps=30")
     assert proc.returncode == 0, proc.stderr[-3000:]
-    run = only_run_dir(tmp_path, "ea")  # exactly one folder: rank 1 made none
-    info = in_step(run, 30)
-    assert Path(info["exports"]["density_grid"]).is_file()
-    assert info["dataset_dir"] == str(tiny_dataset.resolve())  # found, not rendered again
-    saved = torch.load(run / LAST_CKPT, weights_only=False, map_location="cpu")
-    assert saved["global_step"] == 30
-    assert len(saved["callbacks"]["RandomState"]["ranks"]) == 2  # each rank's generators
-    rows = read_csv_metrics(run)
-    assert values(rows, "train/loss") and values(rows, "val/psnr")
-    assert sorted(p.name for p in (tmp_path / "default" / "ea").iterdir()) == [run.name]
+    info = in_step(only_run_dir(tmp_path, "ea"), 30)
+    assert [r["device"] for r in info["ranks"]] == ["cuda:0", "cuda:1"]
 
 
-@pytest.mark.slow  # two runs in two processes (~40 s)
-def test_resume_in_two_processes_continues_in_the_same_folder(tmp_path, tiny_dataset):
-    """Every rank finds the run folder and checkpoint rank 0 resumes; a run that finished
-    its steps, resumed again, is left as it is."""
+@pytest.mark.slow  # three starts of a run in two processes (~45 s)
+def test_a_run_in_two_processes_is_one_folder_that_rank_0_writes_and_resumes(tmp_path,
+                                                                             tiny_dataset):
+    """One run folder, which rank 0 writes: the exports, a checkpoint holding each rank's
+    generators, the CSV log, from the session's dataset (found, not rendered again). With
+    ``resume=true`` every rank finds the run folder and checkpoint rank 0 resumes; a run
+    that finished its steps, resumed again, is left as it is."""
     data = tiny_dataset.parent
     first = run_train(tmp_path, data, *DDP, "budget.ea.steps=20")
     assert first.returncode == 0, first.stderr[-3000:]
-    run = only_run_dir(tmp_path, "ea")
+    run = only_run_dir(tmp_path, "ea")  # exactly one folder: rank 1 made none
+    info = in_step(run, 20)
+    assert Path(info["exports"]["density_grid"]).is_file()
+    assert info["dataset_dir"] == str(tiny_dataset.resolve())
+    saved = torch.load(run / LAST_CKPT, weights_only=False, map_location="cpu")
+    assert saved["global_step"] == 20
+    assert len(saved["callbacks"]["RandomState"]["ranks"]) == 2  # each rank's generators
+    rows = read_csv_metrics(run)
+    assert values(rows, "train/loss") and values(rows, "val/psnr")
     saved = resume_in_place(tmp_path, data, run, *DDP, "budget.ea.steps=30")
     assert saved["global_step"] == 30
     in_step(run, 30)
