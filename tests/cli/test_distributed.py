@@ -22,6 +22,7 @@ from tests.conftest import (
     refusal,
     resume_in_place,
     run_train,
+    train_in_process,
     values,
 )
 
@@ -128,8 +129,8 @@ def test_a_sweep_runs_each_job_in_two_processes(tmp_path, tiny_dataset):
 
 def test_the_baseline_in_two_processes_is_refused(tmp_path):
     """``stage=dpt trainer=ddp_cpu``: one ``nrt: error:`` naming the trainer and the fix,
-    status 2, before any data; the run folder is gone."""
-    proc = run_train(tmp_path, tmp_path / "datasets", "trainer=ddp_cpu", stage="dpt")
+    status 2, before any data; the run folder is gone (in the test's process)."""
+    proc = train_in_process(tmp_path, tmp_path / "datasets", "trainer=ddp_cpu", stage="dpt")
     line = refusal(proc.returncode, proc.stderr)
     assert "stage=dpt" in line and "trainer=ddp_cpu" in line and "trainer=cpu" in line
     assert not list(tmp_path.glob("default/dpt/*"))
