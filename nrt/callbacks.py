@@ -10,9 +10,11 @@ from pathlib import Path
 
 import lightning as L
 import torch
+import torch.distributed as dist
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from nrt.distributed import rank_seed
 from nrt.errors import ConfigError
 from nrt.files import TEMP_MARK, atomic_write, writing
 from nrt.stages.schedules import RunClock
@@ -29,7 +31,10 @@ class WallClock(L.Callback, RunClock):
     curves and budgets measure optimisation alone, whatever the validation cadence. The
     elapsed time is stored in checkpoints: a resumed run continues its clock and budget.
     Schedules over the run's course read it
-    (:func:`~nrt.stages.schedules.training_progress`).
+    (:func:`~nrt.stages.schedules.training_progress`). In a run of several processes with a
+    budget, every rank reads rank 0's clock as it was at the end of the last step
+    (:meth:`schedule_seconds`) and stops when it is spent, so that the ranks double their
+    grids and stop at the same step.
     """
 
     def __init__(self, budget_s: float | None = None):
@@ -39,6 +44,7 @@ class WallClock(L.Callback, RunClock):
         self.budget_s = budget_s
         self.elapsed_before = 0.0
         self._start: float | None = None
+        self._agreed: float | None = None  # rank 0's seconds, with a budget and several ranks
 
     def seconds(self) -> float:
         running = 0.0 if self._start is None else time.perf_counter() - self._start
@@ -54,8 +60,15 @@ class WallClock(L.Callback, RunClock):
         if self._start is None:
             self._start = time.perf_counter()
 
+    def schedule_seconds(self) -> float:
+        """The seconds that schedules and the budget go by: :meth:`seconds`, or rank 0's at
+        the end of the last step in a run of several processes with a budget."""
+        return self.seconds() if self._agreed is None else self._agreed
+
     def on_train_start(self, trainer, pl_module) -> None:
         self.resume()
+        if self.budget_s is not None and getattr(trainer, "world_size", 1) > 1:
+            self._agreed = self.elapsed_before  # the checkpoint's, the same on every rank
 
     def on_train_end(self, trainer, pl_module) -> None:
         self.pause()
@@ -70,6 +83,8 @@ class WallClock(L.Callback, RunClock):
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         seconds = self.seconds()
         pl_module.log("time/wall_s", seconds)
+        if self._agreed is not None:
+            self._agreed = seconds = float(trainer.strategy.broadcast(seconds))
         if self.budget_s is not None and seconds >= self.budget_s and not trainer.should_stop:
             log.info("Time budget of %.0f s spent at step %d: stopping.", self.budget_s,
                      trainer.global_step)
@@ -168,7 +183,8 @@ class PropertyMetrics(L.Callback):
     With ``every_s``, also each time another ``every_s`` training seconds have passed
     (curves with points at fixed wall-clock intervals, whatever the step rate): the
     training clock (:class:`WallClock`) is paused while it measures, so the measurement
-    counts in no method's time or budget.
+    counts in no method's time or budget. In a run of several processes rank 0 alone
+    measures (the ranks hold the same medium).
 
     On a scene family, for a stage with a medium per member
     (:meth:`~nrt.stages.stage.Stage.member_property_grids`): each member's MSEs against its
@@ -238,6 +254,8 @@ class PropertyMetrics(L.Callback):
 
     def _log_direct(self, trainer, pl_module, slices: bool = True) -> None:
         """Outside a validation loop: straight to the loggers, with the clock beside."""
+        if not _lead(trainer):
+            return
         clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
         seconds = clock.seconds() if clock is not None else None  # before measuring
         keep, self.slices = self.slices, self.slices and slices
@@ -258,7 +276,7 @@ class PropertyMetrics(L.Callback):
             self._log_direct(trainer, pl_module)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
-        if self.every_s is None:
+        if self.every_s is None or not _lead(trainer):
             return
         clock = next((c for c in trainer.callbacks if isinstance(c, WallClock)), None)
         if clock is None or clock.seconds() < self._next_due:
@@ -275,9 +293,11 @@ class PropertyMetrics(L.Callback):
     def on_validation_epoch_end(self, trainer, pl_module) -> None:
         if trainer.sanity_checking:
             return
-        for key, value in self.measure(trainer, pl_module).items():
-            pl_module.log(key, value)
         self._last_measured = trainer.global_step
+        if not _lead(trainer):
+            return
+        for key, value in self.measure(trainer, pl_module).items():
+            pl_module.log(key, value, rank_zero_only=True)
 
     def on_train_end(self, trainer, pl_module) -> None:
         if self._last_measured != trainer.global_step:
@@ -289,7 +309,8 @@ class RerenderEvaluation(L.Callback):
     ``every_n_validations`` is 0): every n-th validation, the current medium is rendered
     with Mitsuba for ``max_views`` held-out views per environment (``novel``: those not
     trained on) at ``spp``, and ``eval/psnr_<group>``, ``eval/ssim_<group>`` are logged
-    next to ``time/wall_s``. Costs one Mitsuba render per view; the clock is paused."""
+    next to ``time/wall_s``. Costs one Mitsuba render per view; the clock is paused. Rank 0
+    alone renders in a run of several processes."""
 
     def __init__(self, every_n_validations: int = 0, spp: int = 16, max_views: int = 2,
                  environments: str | list = "novel", resolution: int | None = None):
@@ -299,7 +320,7 @@ class RerenderEvaluation(L.Callback):
         self._data = None
 
     def on_validation_epoch_end(self, trainer, pl_module: Stage) -> None:
-        if self.every <= 0 or trainer.sanity_checking:
+        if self.every <= 0 or trainer.sanity_checking or not _lead(trainer):
             return
         self._count += 1
         if self._count % self.every:
@@ -320,7 +341,7 @@ class RerenderEvaluation(L.Callback):
                          dm.train_data.environments_used(), settings, None, result)
         for key, value in result.metrics.items():
             if key.startswith(("psnr_", "ssim_")) and "_env_" not in key:
-                pl_module.log(f"eval/{key}", value)
+                pl_module.log(f"eval/{key}", value, rank_zero_only=True)
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
@@ -348,27 +369,84 @@ class RandomState(L.Callback):
     """Keeps the global random generators (torch's and Python's; nrt draws nothing from
     NumPy's global one) in each checkpoint and puts them back when a resumed run starts
     training, so that it draws the numbers the run left alone would have drawn (the ray
-    batches follow generators of their own: :meth:`nrt.data.datamodule.RandomRays.resume_at`)."""
+    batches follow generators of their own: :meth:`nrt.data.datamodule.RandomRays.resume_at`).
 
-    def __init__(self) -> None:
+    In a run of several processes each rank draws its own Monte Carlo samples: a new run's
+    rank r > 0 seeds its generators with :func:`nrt.distributed.rank_seed` of ``seed`` when
+    training starts (rank 0 keeps the run's), and a checkpoint keeps every rank's
+    generators (``ranks``, gathered as the ranks save it together) for each to take back;
+    a checkpoint of another number of processes gives rank 0 its own and seeds the rest."""
+
+    def __init__(self, seed: int | None = None) -> None:
+        self.seed = seed
         self._loaded: dict | None = None
 
-    def state_dict(self) -> dict:
+    @staticmethod
+    def _own() -> dict:
         return {"torch": torch.get_rng_state(),
                 "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
                 "python": random.getstate()}
+
+    def state_dict(self) -> dict:
+        """This process's generators; with several processes also every rank's."""
+        state = self._own()
+        if dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            ranks: list[dict | None] = [None] * dist.get_world_size()
+            dist.all_gather_object(ranks, state)
+            state["ranks"] = ranks
+        return state
 
     def load_state_dict(self, state_dict: dict) -> None:
         self._loaded = state_dict
 
     def on_train_start(self, trainer, pl_module) -> None:
-        if self._loaded is None:
-            return
+        rank, world = getattr(trainer, "global_rank", 0), getattr(trainer, "world_size", 1)
         state, self._loaded = self._loaded, None
+        if state is not None and len(state.get("ranks") or []) == world:
+            state = state["ranks"][rank]
+        elif rank > 0:
+            state = None
+        if state is None:
+            if rank > 0:
+                seed = rank_seed(self.seed if self.seed is not None else 0, rank)
+                torch.manual_seed(seed)
+                random.seed(seed)
+            return
         torch.set_rng_state(state["torch"])
         if state["cuda"] and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda"])
         random.setstate(state["python"])
+
+
+class PeakMemory(L.Callback):
+    """The process's peak memory every ``every_n_steps`` training steps, rank 0's:
+    ``memory/peak_rss_gib``, the most resident memory it has held (``getrusage``; Linux
+    counts KiB), and on a GPU ``memory/peak_cuda_gib`` (``torch.cuda.max_memory_allocated``).
+    Not in the default callbacks: ``'+callbacks.peak_memory={_target_:nrt.callbacks.PeakMemory}'``
+    adds it (``benchmarks/gpu_smoke.py``)."""
+
+    def __init__(self, every_n_steps: int = 1):
+        self.every = max(1, int(every_n_steps))
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if trainer.global_step % self.every == 0:
+            for key, value in peak_memory(pl_module.device).items():
+                pl_module.log(key, value)
+
+
+def peak_memory(device: torch.device) -> dict[str, float]:
+    """:class:`PeakMemory`'s values for this process, in GiB."""
+    import resource
+
+    out = {"memory/peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+    if device.type == "cuda":
+        out["memory/peak_cuda_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+    return out
+
+
+def _lead(trainer) -> bool:
+    """Whether this process measures for the run: rank 0, or the only process."""
+    return getattr(trainer, "is_global_zero", True)
 
 
 class LastCheckpoint(ModelCheckpoint):

@@ -9,7 +9,11 @@ In a multirun (``nrt-train -m``) every job gets ``outputs/multirun/<timestamp>-<
 with ``resume=true`` each job continues instead in the newest earlier job folder of any
 sweep whose overrides equal its own (``resume`` aside, and any other key of
 ``hydra.job.config.override_dirname.exclude_keys``) and that saved a checkpoint
-(:func:`job_subdir`), and the new sweep folder keeps only Hydra's ``multirun.yaml``.
+(:func:`job_subdir`), and the new sweep folder keeps only Hydra's ``multirun.yaml``. The
+sweep folder is one for all jobs, also where a launcher runs them in other processes
+(``NRT_SWEEP_DIR``, :func:`sweep_dir`); a job started again in its own folder, which holds
+its checkpoint (a cluster re-queued it), continues there as ``resume=true`` would
+(:func:`continuing_job`).
 
 A start that fails (a config mistake, a missing checkpoint) leaves nothing behind:
 :func:`discard_failed_start` removes the folder it created, or a resumed run's config copy;
@@ -35,6 +39,9 @@ RESUMED_PREFIX = "resumed-"
 
 SWEEP_FILE = "multirun.yaml"
 """What Hydra writes into a sweep's folder before its first job."""
+
+SWEEP_ENV = "NRT_SWEEP_DIR"
+"""The sweep folder, for the processes a sweep starts (:func:`sweep_dir`)."""
 
 _chosen: dict[tuple[str, str], str] = {}
 _tags: dict[str, str] = {}
@@ -82,13 +89,49 @@ def run_dir(base: str, resume) -> str:
     return _chosen[key]
 
 
-def sweep_dir(base: str) -> str:
+def sweep_dir(base: str, *, _root_=None) -> str:
     """Resolver ``${nrt_sweep_dir:base}``: ``<base>/<timestamp>-<pid>``, the same answer for
-    the whole process (Hydra resolves it for the sweep and again for each job)."""
+    the whole process (Hydra resolves it for the sweep and again for each job) and for the
+    processes it starts (a launcher's workers, a cluster's jobs resolve it again): a
+    sweep puts its folder into their environment as ``NRT_SWEEP_DIR``, and a folder found
+    there is the answer. Setting it runs a sweep again in that folder, where the jobs that
+    saved a checkpoint continue (:func:`continuing_job`). ``_root_``: the config resolved
+    (OmegaConf passes it), whose ``hydra.mode`` tells a sweep from a config composed
+    elsewhere (a test's), which leaves the environment alone."""
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+
     key = ("sweep", str(base))
     if key not in _chosen:
-        _chosen[key] = new_run_dir(base)
+        _chosen[key] = os.environ.get(SWEEP_ENV) or new_run_dir(base)
+    if _root_ is not None and OmegaConf.select(_root_, "hydra.mode") == RunMode.MULTIRUN:
+        os.environ[SWEEP_ENV] = os.path.abspath(_chosen[key])
     return _chosen[key]
+
+
+def _multirun_job():
+    """Hydra's config of the multirun job this process runs; None for anything else (a
+    single run, a config composed by a test)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized():
+        return None
+    hydra_cfg = HydraConfig.get()
+    return hydra_cfg if hydra_cfg.mode == RunMode.MULTIRUN else None
+
+
+def continuing_job() -> bool:
+    """Whether this process runs a multirun job, not asked to resume, in a folder that
+    already holds its ``checkpoints/last.ckpt``: the same job of the same sweep started
+    again (submitit re-queued it after a preemption or its time limit, or the sweep ran
+    again with ``NRT_SWEEP_DIR``). Such a job continues from that checkpoint, as
+    ``resume=true`` would, under a ``resumed-<time>`` tag (:func:`resume_tag`)."""
+    from omegaconf import OmegaConf
+
+    hydra_cfg = _multirun_job()
+    folder = OmegaConf.select(hydra_cfg, "runtime.output_dir") if hydra_cfg else None
+    return bool(folder) and (Path(str(folder)) / LAST_CKPT).is_file()
 
 
 def _kept(overrides, exclude_keys) -> list[str]:
@@ -136,9 +179,12 @@ def job_subdir(num, resume) -> str:
 
 
 def resume_tag(resume) -> str:
-    """Resolver ``${nrt_resume_tag:resume}``: ``""`` for a new run, else ``resumed-<time>``."""
+    """Resolver ``${nrt_resume_tag:resume}``: ``""`` for a new run, else ``resumed-<time>``
+    (also for a :func:`continuing_job`)."""
     if resume in (None, False):
-        return ""
+        if not continuing_job():
+            return ""
+        resume = f"job:{_multirun_job().runtime.output_dir}"
     return _tags.setdefault(str(resume),
                             f"{RESUMED_PREFIX}{time.strftime('%Y-%m-%d_%H-%M-%S')}")
 
@@ -150,16 +196,16 @@ def discard_failed_start(run_dir: str | Path, config_subdir: str | None, since: 
     named (:func:`new_run_dir`) goes, with the folders above it that did not exist before
     and are empty now; a multirun job's new folder ``<sweep>/<n>`` goes (``sweep``: the
     sweep's folder, given for a multirun job), and the sweep's folder too when it holds
-    nothing but Hydra's ``multirun.yaml``; in a resumed run's folder (a single run's, or an
-    earlier sweep's job that a multirun resumed) only this start's config copy
-    (``config_subdir``, ``.hydra/resumed-<time>``) goes."""
+    nothing but Hydra's ``multirun.yaml``; in a resumed run's folder (a single run's, an
+    earlier sweep's job that a multirun resumed, a job continuing in its own folder) only
+    this start's config copy (``config_subdir``, ``.hydra/resumed-<time>``) goes."""
     run_dir = Path(os.path.abspath(run_dir))
     if any(p.stat().st_mtime >= since for p in (run_dir / "checkpoints").glob("*.ckpt")):
         return
     sweep = Path(os.path.abspath(sweep)) if sweep is not None else None
     if run_dir in _created:
         _remove_created(run_dir)
-    elif sweep is not None and run_dir.parent == sweep:
+    elif sweep is not None and run_dir.parent == sweep and not (run_dir / LAST_CKPT).exists():
         shutil.rmtree(run_dir, ignore_errors=True)
     elif config_subdir and Path(config_subdir).name.startswith(RESUMED_PREFIX):
         shutil.rmtree(run_dir / config_subdir, ignore_errors=True)

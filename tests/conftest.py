@@ -13,8 +13,10 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import copy
 import csv
+import signal
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -206,6 +208,42 @@ def train_in_process(out: Path, data_root: Path, *overrides: str, stage: str = "
     refusals."""
     cmd, _ = train_command(out, data_root, *overrides, stage=stage)
     return cli_in_process("train", *cmd[len(NRT_TRAIN):], env={"NRT_OUTPUT_DIR": str(out)})
+
+
+def multirun_command(out: Path, data_root: Path, *overrides: str, stage: str = "ea"
+                     ) -> tuple[list[str], dict]:
+    """:func:`train_command` as a sweep: ``nrt-train -m ...``."""
+    cmd, env = train_command(out, data_root, *overrides, stage=stage)
+    return [*cmd[:3], "-m", *cmd[3:]], env
+
+
+def multirun(out: Path, data_root: Path, *overrides: str, env: dict | None = None
+             ) -> subprocess.CompletedProcess:
+    """``nrt-train -m stage=ea preset=tiny ...`` (:func:`multirun_command`), finished;
+    ``env``: variables added to its environment."""
+    cmd, base = multirun_command(out, data_root, *overrides)
+    return subprocess.run(cmd, env={**base, **(env or {})}, capture_output=True, text=True,
+                          timeout=600)
+
+
+def kill_after_checkpoint(proc: subprocess.Popen, folder: Path, pattern: str, first: int,
+                          end: int, timeout: float = 300) -> int:
+    """Wait until a ``last.ckpt`` of ``folder.glob(pattern)`` holds a step in [first, end),
+    then kill ``proc`` (SIGKILL, as a crash or a preemption would); that step."""
+    import torch
+
+    try:
+        deadline, saved = time.time() + timeout, None
+        while time.time() < deadline and saved is None:
+            for last in folder.glob(pattern):
+                step = torch.load(last, weights_only=False, map_location="cpu")["global_step"]
+                saved = step if first <= step < end else None
+            time.sleep(0.05)
+        assert saved is not None, f"no checkpoint at a step in [{first}, {end})"
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    return saved
 
 
 def refusal(returncode: int, stderr: str) -> str:

@@ -25,7 +25,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("nrt.errors", "nrt.files"),
     ("nrt.physics", "nrt.cameras"),
     ("nrt.mitsuba",),
-    ("nrt.weights", "nrt.metrics", "nrt.run_dirs", "nrt.tensorboard"),
+    ("nrt.weights", "nrt.metrics", "nrt.run_dirs", "nrt.tensorboard", "nrt.distributed"),
     ("nrt.data",),
     ("nrt.modules.encodings",),
     ("nrt.modules.fields",),

@@ -21,7 +21,8 @@ from nrt.cli.config_errors import value_text
 from nrt.cli.shapes import check_arguments
 from nrt.errors import ConfigError
 
-__all__ = ["check_arguments", "check_budget", "check_mode", "check_objectives", "check_options"]
+__all__ = ["check_arguments", "check_budget", "check_mode", "check_objectives", "check_options",
+           "check_processes", "processes"]
 
 ZERO_ALLOWED = ("light_degree", "sky_env_directions", "sky_phase_directions", "photo_twins")
 """Counts of ``budget`` for which 0 is meaningful (SH band 0 only; one of the two MIS
@@ -121,6 +122,9 @@ OPTIONS: dict[str, tuple[str, Callable[[object], bool]]] = {
                        lambda v: isinstance(v, str)),
     "budget_s": ("a positive number of seconds of training (or null for no time limit)",
                  lambda v: v is None or (_is_number(v) and v > 0)),
+    "threads": ("a whole number >= 1 of torch threads per process, or null (the cores "
+                "shared among the jobs a joblib launcher runs at once and a run's processes)",
+                lambda v: v is None or _is_count(v, 1)),
 }
 """The scalar options of the root configs, what each must be, and the test of it."""
 
@@ -250,3 +254,53 @@ def check_mode(cfg: DictConfig) -> None:
     if not _is_number(latent.get("lr")) or latent["lr"] <= 0:
         raise ConfigError(f"mode.latent.lr={latent.get('lr')}: a learning rate must be a "
                           "positive number.")
+
+
+SINGLE_PROCESS_STAGES = ("dpt",)
+"""Stages that train in one process only: the baseline chooses its views and Mitsuba's
+seeds from the run's seed and step alone (every rank would render the same views with the
+same noise) and renders on the device Dr.Jit picks, not its rank's."""
+
+LIGHTNING_STRATEGIES = ("ddp", "fsdp", "deepspeed")
+"""Lightning's own strategies of several processes (named by strings)."""
+
+
+def processes(cfg: DictConfig) -> int:
+    """How many processes ``cfg.trainer`` trains in (:func:`nrt.distributed.process_count`)."""
+    from nrt.distributed import process_count
+
+    trainer = {key: OmegaConf.select(cfg, f"trainer.{key}")
+               for key in ("strategy", "devices", "accelerator", "num_nodes")}
+    if OmegaConf.is_config(trainer["strategy"]):
+        trainer["strategy"] = OmegaConf.to_container(trainer["strategy"], resolve=True)
+    if OmegaConf.is_config(trainer["devices"]):
+        trainer["devices"] = OmegaConf.to_container(trainer["devices"], resolve=True)
+    return process_count(trainer)
+
+
+def check_processes(cfg: DictConfig, choices: Mapping[str, str] | None = None) -> None:
+    """Refuse a run in several processes that nrt cannot train, before anything is built:
+    Lightning's own ``ddp`` strategies (torch's DistributedDataParallel, which cannot follow
+    stage 2's grids that double or its several backward passes a step) and the stages of
+    :data:`SINGLE_PROCESS_STAGES`. ``choices``: the config groups chosen (Hydra's
+    ``runtime.choices``), to name the trainer."""
+    strategy = OmegaConf.select(cfg, "trainer.strategy")
+    if isinstance(strategy, str) and strategy.startswith(LIGHTNING_STRATEGIES):
+        raise ConfigError(
+            f"trainer.strategy={strategy}: nrt trains in several processes with its own "
+            "strategy, which averages each gradient over the ranks before every step "
+            "(nrt.distributed.GradientAveraging); Lightning's wraps the stage in torch's "
+            "DistributedDataParallel, which cannot follow grids that double or several "
+            "backward passes a step. Use trainer=ddp_cpu (2 CPU processes) or trainer=ddp "
+            "(one process per GPU).")
+    count = processes(cfg)
+    stage = OmegaConf.select(cfg, "stage.name")
+    if count > 1 and stage in SINGLE_PROCESS_STAGES:
+        trainer = (choices or {}).get("trainer") or "<several processes>"
+        raise ConfigError(
+            f"stage={stage} trains in one process, but trainer={trainer} trains in {count}: "
+            "the baseline picks its views and Mitsuba's seeds from the run's seed and step "
+            "alone, so every rank would render the same views with the same noise, on the "
+            "device Mitsuba picks. Run it with trainer=cpu (or trainer=gpu); to run several "
+            "baselines at once, sweep them: nrt-train -m hydra/launcher=nrt_joblib "
+            f"stage={stage} seed=0,1.")

@@ -139,6 +139,7 @@ def run_app(task: Callable[[DictConfig], object], config_name: str,
 
     @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name=config_name)
     def _main(cfg: DictConfig):
+        tune_allocator()  # again in a launcher's worker process, which runs jobs without run_app
         _set_env(FULL_ERROR, user_full_error)
         try:
             try:

@@ -133,6 +133,9 @@ def _missing_option(exc: MissingConfigException, command: str) -> ConfigError:
         f"{group}={option} in its defaults, so that combination does not exist (e.g. "
         f"experiment=rte_paper goes with stage=rte or stage=forward)."
     )
+    if group == "hydra/launcher":  # nrt's presets name the plugins' configs
+        why = (" Hydra's joblib and submitit launchers come with nrt's `scale` extra: pip "
+               "install -e '.[scale]'.")
     return ConfigError(
         f"{group}={option}: config group '{group}' has no option '{option}'"
         f"{_close(option, exc.options)}; its options are {', '.join(exc.options)} "

@@ -26,6 +26,7 @@ from torch.utils.data import DataLoader, IterableDataset
 from nrt.cameras import camera_rays
 from nrt.data.dataset import SceneDataset, load_dataset
 from nrt.data.family import Family, load_family
+from nrt.distributed import rank_seed
 from nrt.errors import DatasetError
 from nrt.physics.envmap import EnvironmentMap
 
@@ -183,10 +184,13 @@ class RayDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         """Random ray batches; a resumed run continues where its checkpoint left them (one
-        batch an optimizer step, as every stage takes)."""
-        rays = RandomRays(self.train_data, self.batch_size, self.steps_per_epoch, self.seed,
-                          self.train_members, self.twins)
+        batch an optimizer step, as every stage takes). In a run of several processes rank
+        r draws its own, from :func:`~nrt.distributed.rank_seed` (rank 0 and a one-process
+        run from ``seed``), ``batch_size`` rays a step each."""
         trainer = self.trainer
+        rank = trainer.global_rank if trainer is not None else 0
+        rays = RandomRays(self.train_data, self.batch_size, self.steps_per_epoch,
+                          rank_seed(self.seed, rank), self.train_members, self.twins)
         if trainer is not None and trainer.global_step:
             epoch = trainer.current_epoch
             rays.resume_at(epoch, trainer.global_step - epoch * self.steps_per_epoch)

@@ -16,6 +16,11 @@ class RunClock:
         """Training seconds so far."""
         raise NotImplementedError
 
+    def schedule_seconds(self) -> float:
+        """The training seconds that schedules go by: :meth:`seconds` (a clock shared by
+        several processes gives the same answer on each)."""
+        return self.seconds()
+
 
 def training_progress(trainer) -> float:
     """How far a run is, in [0, 1]: the larger of steps / max_steps and, with a time budget
@@ -24,5 +29,5 @@ def training_progress(trainer) -> float:
     done = trainer.global_step / max(int(trainer.max_steps), 1) if trainer.max_steps > 0 else 0.0
     clock = next((c for c in trainer.callbacks if isinstance(c, RunClock)), None)
     if clock is not None and clock.budget_s:
-        done = max(done, clock.seconds() / clock.budget_s)
+        done = max(done, clock.schedule_seconds() / clock.budget_s)
     return min(done, 1.0)

@@ -45,6 +45,7 @@ import lightning as L
 import torch
 from torch.profiler import record_function
 
+from nrt.distributed import synced
 from nrt.errors import ConfigError
 from nrt.metrics import psnr
 from nrt.stages.checkpoints import check_format, stamp
@@ -137,7 +138,12 @@ class Stage(L.LightningModule):
 
     def log(self, name: str, value, *args, **kwargs) -> None:
         """Lightning's ``log``, in the profiler scope ``nrt/logging`` (benchmarks.profile_step
-        counts it as the framework's time)."""
+        counts it as the framework's time). Every stage's and callback's metric passes
+        here: in a run of several processes it is the mean over the ranks (``sync_dist``),
+        unless it is a rank's own (:func:`nrt.distributed.synced`: clocks, timings,
+        memory) or rank 0 logs it alone (``rank_zero_only=True``)."""
+        if not kwargs.get("rank_zero_only") and synced(name):
+            kwargs.setdefault("sync_dist", True)
         with record_function("nrt/logging"):
             super().log(name, value, *args, **kwargs)
 

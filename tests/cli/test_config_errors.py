@@ -17,7 +17,7 @@ from omegaconf import OmegaConf
 from nrt.cli.checks import check_arguments
 from nrt.errors import ConfigError
 from nrt.run_dirs import LAST_CKPT, SWEEP_FILE, earlier_job
-from tests.conftest import cli_in_process, compose_config, train_command
+from tests.conftest import cli_in_process, compose_config, multirun
 
 pytestmark = pytest.mark.e2e
 
@@ -128,12 +128,6 @@ def test_values_of_the_wrong_shape_are_refused_with_the_fix(overrides, needle):
 def test_every_default_composition_has_the_shapes_its_constructors_take(overrides):
     cfg = compose_config("train", ["preset=tiny", *overrides])
     check_arguments(cfg)
-
-
-def multirun(out: Path, data_root: Path, *overrides: str) -> subprocess.CompletedProcess:
-    cmd, env = train_command(out, data_root, *overrides)
-    return subprocess.run([*cmd[:3], "-m", *cmd[3:]], env=env, capture_output=True, text=True,
-                          timeout=600)
 
 
 # The matching rule is unit-tested in the fast tier; this one starts a sweep.

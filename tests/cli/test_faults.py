@@ -25,6 +25,7 @@ from tests.conftest import (
     ROOT,
     cli_in_process,
     compose_config,
+    kill_after_checkpoint,
     only_run_dir,
     refusal,
     run_train,
@@ -108,7 +109,8 @@ def test_an_output_folder_that_is_a_file_is_refused_before_anything(tmp_path):
 
 @pytest.mark.parametrize("override", ["seed=abc", "seed=-1", "seed=4294967296", "seed=1.5",
                                       "render.progress=maybe", "render.variant=[1]",
-                                      "resume=3", "budget_s=-5", "budget_s=soon"])
+                                      "resume=3", "budget_s=-5", "budget_s=soon",
+                                      "threads=0", "threads=two"])
 def test_scalar_options_are_refused_like_the_budget(override):
     from nrt.cli.checks import check_options
 
@@ -325,8 +327,6 @@ def test_a_run_resumed_after_a_kill_ends_the_same(tmp_path, tiny_ea_run, stage, 
     killed after a checkpoint, whether the checkpoint falls on a validation or between two,
     and resumed with ``resume=true`` exports the same grids, bit for bit, as the same run
     left alone."""
-    import torch
-
     ea_out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(ea_out, "ea") / "checkpoints" / "last.ckpt"
@@ -338,17 +338,8 @@ def test_a_run_resumed_after_a_kill_ends_the_same(tmp_path, tiny_ea_run, stage, 
     assert whole.returncode == 0, whole.stderr[-3000:]
     cmd, env = train_command(cut_out, data, *steps, stage=stage)
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline, saved = time.time() + 300, None
-        while time.time() < deadline and saved is None:
-            for last in cut_out.glob(f"default/{stage}/*/checkpoints/last.ckpt"):
-                step = torch.load(last, weights_only=False, map_location="cpu")["global_step"]
-                saved = step if 10 <= step < 50 else None
-            time.sleep(0.05)
-        assert saved is not None, "no checkpoint before the end"
-    finally:
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
+    saved = kill_after_checkpoint(proc, cut_out, f"default/{stage}/*/checkpoints/last.ckpt",
+                                  10, 50)
     assert not list(cut_out.glob(f"default/{stage}/*/{export}"))  # it was cut short
     resumed = run_train(cut_out, data, *steps, "resume=true", stage=stage)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
