@@ -18,7 +18,8 @@ run whose JSON exists is skipped, so a killed comparison resumes.
 
 ``redraw``: the figure (property MSE against training seconds, every scene and
 realisation, log time) and the Markdown table (mean and spread over realisations per scene
-and method, time-to-accuracy) from those files alone.
+and method; stage 2 against the baseline over the blind scenes and over all, as per-scene
+ratios; time-to-accuracy) from those files alone.
 
     python -m benchmarks.fair_comparison run [--scenes default,heldout,...] [--photo-seeds 0,1]
         [--photo-variant auto] [--methods rte,dpt,rte_paper] [--paper-on default]
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import SCENES, ea_checkpoint, output_dir
+from benchmarks.common import BLIND_SCENES, SCENES, ea_checkpoint, output_dir
 from benchmarks.equal_time import (
     EVAL_KEYS,
     PROPERTIES,
@@ -122,6 +123,57 @@ def mean_spread(values: list[float]) -> str:
         f"{mean:.3f} ± {(max(values) - min(values)) / 2:.3f}"
 
 
+def scene_means(results: dict, method: str, key: str) -> dict[str, float]:
+    """Scene -> the mean over its realisations of one end metric of one method."""
+    by: dict[str, list[float]] = {}
+    for (scene, _, m), rec in results.items():
+        value = rec["metrics"].get(key, math.nan)
+        if m == method and not math.isnan(value):
+            by.setdefault(scene, []).append(value)
+    return {scene: sum(v) / len(v) for scene, v in by.items()}
+
+
+def compare(rte: dict[str, float], dpt: dict[str, float], difference: bool) -> str:
+    """Stage 2 against the baseline over the scenes both have: the geometric mean of the
+    per-scene ratios (or the mean of the differences), their range and the scenes where
+    stage 2 is better (a lower error, or a higher PSNR with ``difference``)."""
+    scenes = sorted(set(rte) & set(dpt))
+    if not scenes:
+        return "-"
+    if difference:
+        values = [rte[s] - dpt[s] for s in scenes]
+        centre, better = sum(values) / len(values), sum(v > 0 for v in values)
+        text = f"{centre:+.2f} dB ({min(values):+.2f} to {max(values):+.2f})"
+    else:
+        values = [rte[s] / dpt[s] for s in scenes]
+        centre = math.exp(sum(math.log(v) for v in values) / len(values))
+        better = sum(v < 1 for v in values)
+        text = f"{centre:.2f}x ({min(values):.2f}-{max(values):.2f})"
+    return f"{text}, {better}/{len(scenes)}"
+
+
+def over_scenes(results: dict) -> list[str]:
+    """Markdown lines: stage 2 against the baseline over the blind scenes and over all:
+    for each property MSE and LPIPS the geometric mean of the per-scene ratios stage 2 /
+    baseline (each scene's realisations averaged first; below 1: stage 2 lower), for PSNR
+    the mean difference in dB; then the range and in how many scenes stage 2 is better."""
+    keys = [*(f"mse_{k}_x100" for k in PROPERTIES), "psnr_novel", "lpips_novel"]
+    head = ["scenes", *PROPERTIES, "PSNR novel", "LPIPS novel"]
+    lines = ["Stage 2 / baseline per scene: geometric mean (range), scenes where stage 2 is "
+             "better; PSNR: stage 2 minus baseline.", "",
+             "| " + " | ".join(head) + " |", "|---|" + "---:|" * len(keys)]
+    scenes = set(k[0] for k in results)
+    for label, group in (("blind", scenes & set(BLIND_SCENES)), ("all", scenes)):
+        cells = [label]
+        for key in keys:
+            rte, dpt = (scene_means(results, m, key) for m in ("rte", "dpt"))
+            cells.append(compare({s: v for s, v in rte.items() if s in group},
+                                 {s: v for s, v in dpt.items() if s in group},
+                                 difference=key == "psnr_novel"))
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def table(results: dict) -> str:
     """Markdown: per scene and method, the start's sigma_t and the end's property MSE x100
     and re-render metrics, mean and half range over photo realisations; then stage 2's and
@@ -141,6 +193,7 @@ def table(results: dict) -> str:
                 cells.append(mean_spread([r["metrics"].get(key, math.nan) for r in recs]))
             cells.append(mean_spread([float(r["steps"]) for r in recs]).split(".")[0])
             lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", *over_scenes(results)]
     lines += ["", "| scene | photos | stage 2 s to the baseline's end sigma_t | baseline s to "
               "stage 2's end sigma_t | budget s |", "|---|---|---:|---:|---:|"]
     for (scene, photos, method), rte in sorted(results.items()):

@@ -203,7 +203,8 @@ def _record(folder: Path, method: str, times, sigma_t, end_psnr: float) -> None:
 def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     """``fair_comparison redraw`` needs only the committed CSV and JSON files: the table
     gives mean and half range over realisations (one of them photos of the scalar variant),
-    and each method's time to reach the other's final sigma_t (never, when it does not)."""
+    stage 2 against the baseline over the blind scenes and over all, and each method's time
+    to reach the other's final sigma_t (never, when it does not)."""
     data = tmp_path / "data"
     times = [0.0, 10.0, 20.0, 30.0, 40.0]
     for k, (photos, shift) in enumerate((("photo0", 0.0), ("photo2_scalar_rgb", 0.2))):
@@ -211,6 +212,8 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
                 [9.0, 6.0, 4.0 + shift, 3.0 + shift, 2.0 + shift], 35.0 + k)
         _record(data / "default" / photos, "dpt", times,
                 [9.0, 8.0, 7.0, 6.5, 6.0], 34.0)
+    _record(data / "heldout" / "photo0", "rte", times, [9.0, 5.0, 3.0, 2.5, 2.0], 35.0)
+    _record(data / "heldout" / "photo0", "dpt", times, [9.0, 7.0, 5.0, 4.5, 4.0], 34.0)
     figure, table = tmp_path / "fig.png", tmp_path / "table.md"
     proc = subprocess.run([sys.executable, "-m", "benchmarks.fair_comparison", "redraw",
                            "--data", str(data), "--figure", str(figure), "--table", str(table)],
@@ -226,6 +229,13 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     # stage 2 reaches the baseline's end (6.0) at 10 s; the baseline never reaches 2.0 / 2.2
     assert "| default | photo0 | 10 | never (> 40) | 40 |" in text
     assert "| default | photo2_scalar_rgb | 10 | never (> 40) | 40 |" in text
+    # over scenes: per-scene ratios of the realisations' means, sigma_t 2.1 / 6 and 2 / 4
+    blind = next(line for line in text.splitlines() if line.startswith("| blind |"))
+    every = next(line for line in text.splitlines() if line.startswith("| all |"))
+    assert "| 0.50x (0.50-0.50), 1/1 |" in blind and "+1.00 dB" in blind, blind
+    assert "| 0.42x (0.35-0.50), 2/2 |" in every, every
+    assert "+1.25 dB (+1.00 to +1.50), 2/2" in every, every
+    assert "| 1.00x (1.00-1.00), 0/2 |" in every  # equal errors: not better
 
 
 def test_a_realisation_of_the_scalar_variant_is_a_scene_of_its_own():
