@@ -34,6 +34,9 @@ OPTIONAL_COUNTS = ("val_views", "spp_final")
 FRACTIONS = ("light_warmup",)
 """Shares of a run in ``budget``, in [0, 1)."""
 
+WEIGHTS = ("extinction_prior",)
+"""Loss weights a preset tunes in ``budget`` (numbers >= 0)."""
+
 RUN_COUNTS = ("stage.steps", "stage.rays_per_batch", "data.steps_per_epoch")
 """Counts outside ``budget`` that a user may override directly."""
 
@@ -75,6 +78,11 @@ def check_budget(cfg: DictConfig) -> None:
         if name in FRACTIONS:
             if not _is_number(value) or not 0 <= value < 1:
                 raise ConfigError(f"{key}={value}: must be a share of the run in [0, 1).")
+            continue
+        if name in WEIGHTS:
+            if not _is_number(value) or value < 0:
+                raise ConfigError(f"{key}={value}: must be a loss weight >= 0 (0 leaves the "
+                                  "term out).")
             continue
         least = 0 if name in ZERO_ALLOWED else 1
         items = value if isinstance(value, list) else [value]

@@ -149,6 +149,8 @@ def test_config_refusals_come_before_any_rendering(tmp_path, stage, overrides, n
     (("stage=rte", "budget.rte.light_warmup=1"), "budget.rte.light_warmup=1"),
     (("stage=rte", "init=none", "budget.rte.medium_upsample_at=[0.6,0.4]"), "upsample_at"),
     (("stage=dpt", "init=none", "budget.dpt.upsample_at=[1.5]"), "upsample_at"),
+    (("stage=dpt", "init=none", "budget.dpt.extinction_prior=-1"),
+     "budget.dpt.extinction_prior=-1"),
     (("losses.photometric=l1",), "losses.photometric"),
     (("model.lr=-0.01",), "model.lr=-0.01"),
     (("stage=rte", "init=none", "model.lr.medium=0"), "model.lr.medium=0"),
