@@ -200,11 +200,11 @@ def table(results: dict) -> str:
         dpt = results.get((scene, photos, "dpt"))
         if method != "rte" or dpt is None:
             continue
-        a = seconds_to_reach(rte["curve"], "sigma_t", dpt["metrics"]["mse_sigma_t_x100"])
-        b = seconds_to_reach(dpt["curve"], "sigma_t", rte["metrics"]["mse_sigma_t_x100"])
-        never = f"never (> {dpt['seconds']:.0f})"
-        lines.append(f"| {scene} | {photos} | {a:.0f} | {never if math.isnan(b) else f'{b:.0f}'} "
-                     f"| {rte['budget_s']:.0f} |")
+        cells = []
+        for own, other in ((rte, dpt), (dpt, rte)):
+            t = seconds_to_reach(own["curve"], "sigma_t", other["metrics"]["mse_sigma_t_x100"])
+            cells.append(f"never (> {own['seconds']:.0f})" if math.isnan(t) else f"{t:.0f}")
+        lines.append(f"| {scene} | {photos} | {cells[0]} | {cells[1]} | {rte['budget_s']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
