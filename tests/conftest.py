@@ -11,8 +11,10 @@ import os
 # spinning, so tests and the subprocesses they start do not starve each other.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import contextlib
 import copy
 import csv
+import json
 import signal
 import subprocess
 import sys
@@ -21,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
@@ -82,10 +85,29 @@ def scene_config() -> Callable[..., dict]:
     return make
 
 
+def session_folder(tmp_path_factory, name: str) -> Path:
+    """A folder the session's shared fixtures build in: under pytest-xdist (``-n 2``) one
+    folder that every worker sees (the workers' temporary folders share a parent), else a
+    fresh one. Build in it under :func:`building`."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return tmp_path_factory.mktemp(name)
+    folder = tmp_path_factory.getbasetemp().parent / name
+    folder.mkdir(exist_ok=True)
+    return folder
+
+
+@contextlib.contextmanager
+def building(folder: Path):
+    """Held while a session fixture builds ``folder``: the first worker builds, the others
+    wait and then find it built (the builders below skip what is already there)."""
+    with FileLock(str(folder) + ".lock"):
+        yield
+
+
 @pytest.fixture(scope="session")
 def tiny_output_dir(tmp_path_factory) -> Path:
     """``paths.output_dir`` of the session's tiny dataset (datasets live in ``datasets/``)."""
-    return tmp_path_factory.mktemp("nrt_output")
+    return session_folder(tmp_path_factory, "nrt_output")
 
 
 @pytest.fixture(scope="session")
@@ -95,7 +117,8 @@ def tiny_dataset(tiny_output_dir) -> Path:
     that corrupt a dataset copy it first."""
     cfg = compose_config("dataset", ["preset=tiny", f"paths.output_dir={tiny_output_dir}"])
     scene = OmegaConf.to_container(cfg.scene, resolve=True)
-    folder = ensure_dataset(scene, cfg.paths.data_dir, progress=False)
+    with building(tiny_output_dir):
+        folder = ensure_dataset(scene, cfg.paths.data_dir, progress=False)
     assert (folder / "scene.json").is_file(), folder
     return folder
 
@@ -118,13 +141,14 @@ apart."""
 def family_dir(tmp_path_factory) -> Path:
     """The test family (:data:`SMALL_FAMILY`), rendered once per session: its folder
     (``family.json``); ``paths.output_dir`` is its grandparent. Read-only."""
-    out = tmp_path_factory.mktemp("generative")
+    out = session_folder(tmp_path_factory, "generative")
     cfg = compose_config("train", [*GENERATIVE_FAMILY, *SMALL_FAMILY,
                                    f"paths.output_dir={out}"])
     from nrt.data.family import ensure_family
 
-    return ensure_family(OmegaConf.to_container(cfg.scene, resolve=True), cfg.paths.data_dir,
-                         progress=False)
+    with building(out):
+        return ensure_family(OmegaConf.to_container(cfg.scene, resolve=True),
+                             cfg.paths.data_dir, progress=False)
 
 
 NRT_TRAIN = [sys.executable, "-m", "nrt.cli.train"]
@@ -308,5 +332,11 @@ def tiny_ea_run(tmp_path_factory, tiny_dataset) -> tuple[Path, subprocess.Comple
     """``nrt-train stage=ea preset=tiny`` run once per session via the real CLI: the
     output folder (holding ``default/ea/<run>``) and the finished process. Stage-2 tests
     start from this run's checkpoint."""
-    out = tmp_path_factory.mktemp("tiny_runs")
-    return out, run_train(out, tiny_dataset.parent)
+    out = session_folder(tmp_path_factory, "tiny_runs")
+    record = out / "ea_process.json"
+    with building(out):
+        if not record.is_file():
+            proc = run_train(out, tiny_dataset.parent)
+            record.write_text(json.dumps([proc.args, proc.returncode, proc.stdout,
+                                          proc.stderr]))
+    return out, subprocess.CompletedProcess(*json.loads(record.read_text()))

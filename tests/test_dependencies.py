@@ -17,9 +17,10 @@ tomllib = pytest.importorskip("tomllib")
 
 ROOT = Path(__file__).resolve().parents[1]
 
-NOT_IMPORTED = {"torchvision", "ruff"}
+NOT_IMPORTED = {"torchvision", "ruff", "pytest-xdist"}
 """Declared but never imported: lpips imports torchvision (declared beside torch so that
-pip installs a matching pair); ruff is the linter the tests' README command runs."""
+pip installs a matching pair); ruff is the linter the tests' README command runs;
+pytest-xdist is the plugin behind the README's ``pytest -n 2``."""
 
 DISTRIBUTIONS = {"OpenEXR": "openexr"}
 """Modules whose distribution importlib.metadata does not map (single extension files)."""
