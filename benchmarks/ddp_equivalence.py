@@ -11,6 +11,8 @@ spread; the summary prints both.
         [--csv docs/data/ddp_equivalence.csv]
     python -m benchmarks.ddp_equivalence --summary   # from the CSV alone
 
+Runs of other seeds or stages already in the CSV are kept (``--seeds 3,4,5`` adds seeds).
+
 Runs one after another (never two trainings at once); each run's folder lands under
 ``<output>/benchmarks/ddp_equivalence``.
 """
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import statistics
 from pathlib import Path
 
@@ -39,6 +42,10 @@ METRICS = {
             "val/psnr"),
 }
 """The end-of-run metrics compared, per stage."""
+
+
+COUNTS = ("processes", "seed", "steps")
+"""Columns of the CSV that hold whole numbers."""
 
 
 def halved(stage: str) -> list[str]:
@@ -71,9 +78,18 @@ def run(stage: str, processes: int, seed: int, out: Path, start: list[str]) -> d
             "wall_s": round(wall, 1), **{key: last(rows, key) for key in METRICS[stage]}}
 
 
+def read_rows(path: Path) -> list[dict]:
+    """The runs recorded in the CSV (none when it does not exist), numbers as floats."""
+    if not path.is_file():
+        return []
+    with open(path) as f:
+        return [{k: v if k == "stage" else int(v) if k in COUNTS else float(v)
+                 for k, v in r.items() if v != ""} for r in csv.DictReader(f)]
+
+
 def summary(rows: list[dict]) -> list[str]:
     """A line per stage and metric: the mean and seed spread (sample sd) of each process
-    count, their difference and whether it lies within the larger spread."""
+    count, their difference, whether it lies within the larger spread, and Welch's t."""
     lines = []
     for stage in dict.fromkeys(r["stage"] for r in rows):
         for key in METRICS[stage]:
@@ -85,9 +101,12 @@ def summary(rows: list[dict]) -> list[str]:
             sd = {p: statistics.stdev(v) for p, v in by.items()}
             diff = mean[2] - mean[1]
             verdict = "within" if abs(diff) <= max(sd.values()) else "outside"
-            lines.append(f"{stage} {key}: 1 process {mean[1]:.4g} +- {sd[1]:.2g}, "
-                         f"2 processes {mean[2]:.4g} +- {sd[2]:.2g}; difference {diff:+.3g}, "
-                         f"{verdict} the seed spread")
+            error = math.sqrt(sum(sd[p] ** 2 / len(by[p]) for p in by))
+            welch = f"{diff / error:+.1f}" if error > 0 else "-"
+            lines.append(f"{stage} {key}: 1 process {mean[1]:.4g} +- {sd[1]:.2g} "
+                         f"({len(by[1])} seeds), 2 processes {mean[2]:.4g} +- {sd[2]:.2g} "
+                         f"({len(by[2])}); difference {diff:+.3g}, {verdict} the seed spread "
+                         f"(Welch t {welch})")
     return lines
 
 
@@ -100,10 +119,7 @@ def main() -> None:
                         help="print the summary of the CSV's runs; train nothing")
     args = parser.parse_args()
     if args.summary:
-        with open(args.csv) as f:
-            rows = [{k: v if k == "stage" else float(v) for k, v in r.items() if v != ""}
-                    for r in csv.DictReader(f)]
-        print("\n".join(summary(rows)))
+        print("\n".join(summary(read_rows(args.csv))))
         return
     seeds = [int(s) for s in args.seeds.split(",")]
     out = output_dir() / "benchmarks" / "ddp_equivalence"
@@ -115,6 +131,9 @@ def main() -> None:
             for processes in (1, 2):
                 rows.append(run(stage, processes, seed, out, start))
                 print(rows[-1], flush=True)
+    done = {(r["stage"], r["processes"], r["seed"]) for r in rows}
+    rows = [r for r in read_rows(args.csv) if (r["stage"], r["processes"], r["seed"])
+            not in done] + rows  # runs of other seeds or stages recorded before are kept
     args.csv.parent.mkdir(parents=True, exist_ok=True)
     with open(args.csv, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(dict.fromkeys(k for r in rows for k in r)))
