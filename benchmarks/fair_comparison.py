@@ -163,10 +163,11 @@ def over_scenes(results: dict) -> list[str]:
              "better; PSNR: stage 2 minus baseline.", "",
              "| " + " | ".join(head) + " |", "|---|" + "---:|" * len(keys)]
     scenes = set(k[0] for k in results)
+    means = {key: [scene_means(results, m, key) for m in ("rte", "dpt")] for key in keys}
     for label, group in (("blind", scenes & set(BLIND_SCENES)), ("all", scenes)):
         cells = [label]
         for key in keys:
-            rte, dpt = (scene_means(results, m, key) for m in ("rte", "dpt"))
+            rte, dpt = means[key]
             cells.append(compare({s: v for s, v in rte.items() if s in group},
                                  {s: v for s, v in dpt.items() if s in group},
                                  difference=key == "psnr_novel"))
