@@ -181,14 +181,20 @@ class StepWindows(L.Callback):
         self.warmup, self.steps = int(warmup), int(steps)
         self.done = 0
         self.mark = 0.0
-        self.plain_s = self.profiled_s = math.nan
+        self.plain_s = self.profiled_s = self.first_step_s = math.nan
         self.profile: torch.profiler.profile | None = None
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if self.done == 0:
+            self.mark = time.perf_counter()
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         self.done += 1
         if pl_module.device.type == "cuda":
             torch.cuda.synchronize(pl_module.device)
         now = time.perf_counter()
+        if self.done == 1:  # the first step holds compile=true's compilation
+            self.first_step_s = now - self.mark
         if self.done == self.warmup:
             self.mark = now
         elif self.done == self.warmup + self.steps:
@@ -582,6 +588,7 @@ def profile(args: argparse.Namespace) -> dict:
         "progress": args.at, "warmup": args.warmup, "steps": n, "machine": machine(),
         "step_ms": {"unprofiled": windows.plain_s / n * 1e3,
                     "profiled": windows.profiled_s / n * 1e3},
+        "first_step_s": windows.first_step_s,
         "components": table,
         "unattributed": {"ms": unattributed["ms"], "share": unattributed["share"]},
         "objectives": {name: {"forward_ms": t["forward"] / n / 1e3,

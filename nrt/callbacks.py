@@ -14,6 +14,7 @@ import torch.distributed as dist
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from nrt.compile import missing_compiler, use_cache
 from nrt.distributed import rank_seed
 from nrt.errors import ConfigError
 from nrt.files import TEMP_MARK, atomic_write, writing
@@ -416,6 +417,39 @@ class RandomState(L.Callback):
         if state["cuda"] and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(state["cuda"])
         random.setstate(state["python"])
+
+
+class CompileHotCode(L.Callback):
+    """With ``enabled`` (``compile=true``), compiles the stage's hot code
+    (:meth:`~nrt.stages.stage.Stage.compile_hot_code`) before training, its kernels cached
+    under ``cache_dir``; where no compiler is present, a warning and eager code
+    (:mod:`nrt.compile`). Logs ``time/first_step_s``, the first training step's seconds in
+    this process, which hold the compilation."""
+
+    def __init__(self, enabled: bool = False, cache_dir: str | None = None):
+        self.enabled, self.cache_dir = bool(enabled), cache_dir
+        self.compiled = False
+        self._first_start: float | None = None
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        if not self.enabled or stage != "fit" or self.compiled:
+            return
+        missing = missing_compiler(trainer.strategy.root_device.type)
+        if missing is not None:
+            log.warning("compile=true, but %s: the run trains with eager code", missing)
+            return
+        use_cache(self.cache_dir)
+        pl_module.compile_hot_code()
+        self.compiled = True
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        if self._first_start is None:
+            self._first_start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        if self._first_start is not None and self._first_start > 0:
+            pl_module.log("time/first_step_s", time.perf_counter() - self._first_start)
+            self._first_start = -1.0
 
 
 class PeakMemory(L.Callback):

@@ -133,6 +133,8 @@ OPTIONS: dict[str, tuple[str, Callable[[object], bool]]] = {
     "threads": ("a whole number >= 1 of torch threads per process, or null (the cores "
                 "shared among the jobs a joblib launcher runs at once and a run's processes)",
                 lambda v: v is None or _is_count(v, 1)),
+    "compile": ("true or false (torch.compile of each stage's hot code, nrt/compile.py)",
+                lambda v: isinstance(v, bool)),
 }
 """The scalar options of the root configs, what each must be, and the test of it."""
 

@@ -99,6 +99,11 @@ class EAModule(Stage):
         if dm is not None:
             self.field.bbox.copy_(dm.bbox.to(self.field.bbox))
 
+    def compile_hot_code(self) -> None:
+        """The density field (hash-grid encoding and MLPs), compiled in place: its state
+        dict's keys stay as they are."""
+        self.field.compile(dynamic=True)  # the rays that hit the box vary in number
+
     def configure_optimizers(self):
         """Adam over the field's parameters, weight decay on all but its ``encoding``'s (if it
         has one: a hash grid's table is not decayed)."""

@@ -110,6 +110,10 @@ class Stage(L.LightningModule):
         """Write what the run produced into ``run_dir`` after training; name -> path."""
         return {}
 
+    def compile_hot_code(self) -> None:
+        """``torch.compile`` the code that dominates a training step, in place (``compile=true``,
+        :class:`nrt.callbacks.CompileHotCode`; :mod:`nrt.compile`): none here."""
+
     # ------------------------------------------------------------- checkpoints
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         """Record the checkpoint format (:func:`~nrt.stages.checkpoints.stamp`)."""

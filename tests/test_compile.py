@@ -1,0 +1,116 @@
+"""``compile=true`` (nrt/compile.py, nrt.callbacks.CompileHotCode): the compiled hot code
+computes what the eager code computes, and a machine without a compiler trains eagerly."""
+
+from __future__ import annotations
+
+import logging
+
+import lightning as L
+import pytest
+import torch
+
+from nrt.callbacks import CompileHotCode
+from nrt.compile import missing_compiler, use_cache
+from nrt.modules.fields.ea_field import EAField
+from nrt.stages.uncollided import UncollidedCache
+from tests.finite_training import fit
+
+pytestmark = pytest.mark.integration
+
+HAVE_CXX = missing_compiler("cpu") is None
+
+
+def test_no_compiler_on_the_path_is_named_with_the_fix(monkeypatch, tmp_path):
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)
+    assert "no C++ compiler found (g++, c++, clang++; set CXX" in missing_compiler("cpu")
+    monkeypatch.setenv("CXX", "my-c++")
+    assert "(my-c++;" in missing_compiler("cpu")
+
+
+def test_the_kernel_cache_goes_where_asked_unless_the_user_chose(monkeypatch, tmp_path):
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    use_cache(str(tmp_path / "cache"))
+    assert (tmp_path / "cache").is_dir()
+    import os
+
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "cache")
+    use_cache(str(tmp_path / "other"))  # the first choice (or the user's) stays
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "cache")
+
+
+def test_without_a_compiler_the_run_trains_eagerly_and_says_so(monkeypatch, tmp_path, caplog):
+    from tests.stages.test_rte_split_stage import build
+
+    model, dm = build(tmp_path)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)
+    callback = CompileHotCode(enabled=True, cache_dir=str(tmp_path / "cache"))
+    trainer = L.Trainer(max_steps=2, accelerator="cpu", logger=False,
+                        enable_checkpointing=False, enable_progress_bar=False,
+                        num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
+                        callbacks=[callback])
+    with caplog.at_level(logging.WARNING, logger="nrt.callbacks"):
+        trainer.fit(model, datamodule=dm)
+    assert not callback.compiled and trainer.global_step == 2
+    assert model.uncollided.project.__module__ == "nrt.physics.sky_light"  # the eager function
+    assert "no C++ compiler found" in caplog.text and "eager code" in caplog.text
+
+
+def small_field() -> EAField:
+    return EAField(hash_grid={"levels": 4, "log2_table_size": 12, "base_resolution": 4},
+                   hidden=16)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAVE_CXX, reason="no C++ compiler for inductor here")
+def test_a_compiled_field_gives_the_eager_density_colour_and_gradients():
+    """Fused float32 ops reorder sums: values and gradients agree to a few ulps of float32
+    relative to their scale (rtol 1e-5), not bit for bit."""
+    torch.manual_seed(0)
+    eager, compiled = small_field(), small_field()
+    compiled.load_state_dict(eager.state_dict())
+    compiled.compile(dynamic=True)
+    for n in (300, 257):  # two ray counts: one compiled graph serves both
+        x, d = torch.rand(n, 3) * 2 - 1, torch.nn.functional.normalize(torch.randn(n, 3), dim=-1)
+        outs = []
+        for field in (eager, compiled):
+            field.zero_grad()
+            sigma, rgb = field(x, d)
+            (sigma.square().sum() + rgb.sum()).backward()
+            outs.append((sigma.detach(), rgb.detach(),
+                         [p.grad.clone() for p in field.parameters()]))
+        for a, b in zip(outs[0][:2], outs[1][:2], strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6 * float(a.abs().max()))
+        for ga, gb in zip(outs[0][2], outs[1][2], strict=True):
+            torch.testing.assert_close(gb, ga, rtol=1e-4, atol=1e-5 * float(ga.abs().max()))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not HAVE_CXX, reason="no C++ compiler for inductor here")
+def test_a_compiled_refresh_projects_the_eager_uncollided_light(tmp_path):
+    """With inductor drawing its random numbers as eager code does (``fallback_random``),
+    the compiled refresh sees the same directions and strata: the same SH coefficients up to
+    float32 rounding of the fused march."""
+    import torch._inductor.config as inductor_config
+
+    from nrt.modules.fields.voxel_medium import detached
+    from tests.stages.test_rte_split_stage import build
+
+    model, dm = build(tmp_path)
+    fit(model, dm, 1)  # the stage set up: its light, medium and skies
+    medium = detached(next(iter(model.scenes.pairs()))[0])
+    sky = model.sky_lights.illumination_of(model.light)
+    caches = {}
+    for name in ("eager", "compiled"):
+        cache = UncollidedCache(model.hparams.samples)
+        if name == "compiled":
+            cache.compile()
+        torch.manual_seed(1)
+        with inductor_config.patch(fallback_random=True):
+            cache.refresh(medium, model.light, sky)
+        caches[name] = model.light.uncollided.clone()
+    scale = float(caches["eager"].abs().max())
+    assert scale > 0
+    torch.testing.assert_close(caches["compiled"], caches["eager"], rtol=1e-4,
+                               atol=1e-5 * scale)
