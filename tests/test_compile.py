@@ -11,7 +11,9 @@ import torch
 
 from nrt.callbacks import CompileHotCode
 from nrt.compile import missing_compiler, use_cache
+from nrt.data.datamodule import RayDataModule
 from nrt.modules.fields.ea_field import EAField
+from nrt.stages.ea import EAModule
 from nrt.stages.uncollided import UncollidedCache
 from tests.finite_training import fit
 
@@ -39,10 +41,13 @@ def test_the_kernel_cache_goes_where_asked_unless_the_user_chose(monkeypatch, tm
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "cache")
 
 
-def test_without_a_compiler_the_run_trains_eagerly_and_says_so(monkeypatch, tmp_path, caplog):
-    from tests.stages.test_rte_split_stage import build
-
-    model, dm = build(tmp_path)
+def test_without_a_compiler_the_run_trains_eagerly_and_says_so(monkeypatch, tmp_path, caplog,
+                                                              tiny_dataset):
+    model = EAModule(density_field={"_target_": "nrt.modules.fields.ea_field.EAField",
+                                    "_partial_": True, "hidden": 16,
+                                    "hash_grid": {"levels": 4, "log2_table_size": 12}},
+                     samples_per_ray=16)
+    dm = RayDataModule(str(tiny_dataset), batch_size=128, steps_per_epoch=2, val_views=1)
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.delenv("CXX", raising=False)
     callback = CompileHotCode(enabled=True, cache_dir=str(tmp_path / "cache"))
@@ -53,7 +58,7 @@ def test_without_a_compiler_the_run_trains_eagerly_and_says_so(monkeypatch, tmp_
     with caplog.at_level(logging.WARNING, logger="nrt.callbacks"):
         trainer.fit(model, datamodule=dm)
     assert not callback.compiled and trainer.global_step == 2
-    assert model.uncollided.project.__module__ == "nrt.physics.sky_light"  # the eager function
+    assert model.field._compiled_call_impl is None  # nn.Module.compile was not called
     assert "no C++ compiler found" in caplog.text and "eager code" in caplog.text
 
 
