@@ -1,5 +1,7 @@
 """Training-step time of two settings side by side, in one run: by default the code as it
-runs eagerly (``compile=false``) against ``compile=true`` (:mod:`nrt.compile`).
+runs eagerly (``compile=false``) against ``compile=true`` (:mod:`nrt.compile`); with
+``--a-code DIR`` setting A runs the nrt in ``DIR`` (a checkout of the code before a change,
+e.g. ``git worktree add DIR <commit>``), so that a change is timed against its parent.
 
 For each stage, :mod:`benchmarks.profile_step` runs once per setting and round, each in a
 process of its own (compiled code and its caches stay in their process), the settings
@@ -12,29 +14,36 @@ first round's first step says what a cold cache costs), and the speed-up, B's st
 second over A's. ``--json`` writes every round.
 
     python -m benchmarks.step_speed [--stages ea,rte] [--preset cpu] [--rounds 2]
-        [--a compile=false] [--b compile=true] [--steps 20] [--warmup 5] [--json PATH]
+        [--a compile=false] [--b compile=true] [--a-code DIR] [--b-code DIR] [--steps 20]
+        [--warmup 5] [--json PATH]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+HERE = Path(__file__).resolve().parents[1]
+
 
 def one_run(stage: str, preset: str, setting: list[str], steps: int, warmup: int,
-            at: float) -> dict:
-    """One :mod:`benchmarks.profile_step` run in its own process: its report."""
+            at: float, code: Path = HERE) -> dict:
+    """One :mod:`benchmarks.profile_step` run of the nrt in ``code`` in its own process: its
+    report. Outputs (datasets, EA checkpoints) are this tree's (``NRT_OUTPUT_DIR``)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "report.json"
         cmd = [sys.executable, "-m", "benchmarks.profile_step", "--stage", stage, "--preset",
                preset, "--steps", str(steps), "--warmup", str(warmup), "--at", str(at),
                "--probe-seconds", "0.2", "--json", str(out), *setting]
-        done = subprocess.run(cmd, capture_output=True, text=True)
+        env = {**os.environ, "PYTHONPATH": str(code),
+               "NRT_OUTPUT_DIR": os.environ.get("NRT_OUTPUT_DIR", str(HERE / "outputs"))}
+        done = subprocess.run(cmd, capture_output=True, text=True, cwd=code, env=env)
         if done.returncode != 0:
             sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
         return json.loads(out.read_text())
@@ -65,21 +74,27 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--a", default="compile=false", help="setting A: overrides, spaces")
     parser.add_argument("--b", default="compile=true", help="setting B: overrides, spaces")
+    parser.add_argument("--a-code", type=Path, default=HERE, help="the nrt setting A runs")
+    parser.add_argument("--b-code", type=Path, default=HERE, help="the nrt setting B runs")
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--at", type=float, default=0.5)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
-    stages, names = args.stages.split(","), (args.a, args.b)
+    stages = args.stages.split(",")
+    codes = {"A": args.a_code.resolve(), "B": args.b_code.resolve()}
+    names = tuple(f"{code}: {setting}" if codes["A"] != codes["B"] else setting
+                  for code, setting in zip(("A", "B"), (args.a, args.b), strict=True))
     rows = []
     for stage in stages:
         for r in range(args.rounds):
-            for name in names:
-                report = one_run(stage, args.preset, name.split(), args.steps, args.warmup,
-                                 args.at)
+            for name, setting, code in zip(names, (args.a, args.b), codes.values(),
+                                           strict=True):
+                report = one_run(stage, args.preset, setting.split(), args.steps, args.warmup,
+                                 args.at, code)
                 rows.append({"stage": stage, "setting": name, "round": r,
                              "ms": report["step_ms"]["unprofiled"],
-                             "first_s": report["first_step_s"]})
+                             "first_s": report.get("first_step_s", float("nan"))})
                 print(f"{stage} {name} round {r}: {rows[-1]['ms']:.1f} ms/step, first step "
                       f"{rows[-1]['first_s']:.1f} s", flush=True)
     table = summary(rows, stages, names)
@@ -87,6 +102,7 @@ def main(argv: list[str] | None = None) -> str:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"preset": args.preset, "rounds": rows,
+                                         "code": {k: str(v) for k, v in codes.items()},
                                          "machine": report["machine"]}, indent=1))
     return table
 

@@ -14,8 +14,6 @@ from nrt.compile import missing_compiler, use_cache
 from nrt.data.datamodule import RayDataModule
 from nrt.modules.fields.ea_field import EAField
 from nrt.stages.ea import EAModule
-from nrt.stages.uncollided import UncollidedCache
-from tests.finite_training import fit
 
 pytestmark = pytest.mark.integration
 
@@ -89,33 +87,3 @@ def test_a_compiled_field_gives_the_eager_density_colour_and_gradients():
             torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6 * float(a.abs().max()))
         for ga, gb in zip(outs[0][2], outs[1][2], strict=True):
             torch.testing.assert_close(gb, ga, rtol=1e-4, atol=1e-5 * float(ga.abs().max()))
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not HAVE_CXX, reason="no C++ compiler for inductor here")
-def test_a_compiled_refresh_projects_the_eager_uncollided_light(tmp_path):
-    """With inductor drawing its random numbers as eager code does (``fallback_random``),
-    the compiled refresh sees the same directions and strata: the same SH coefficients up to
-    float32 rounding of the fused march."""
-    import torch._inductor.config as inductor_config
-
-    from nrt.modules.fields.voxel_medium import detached
-    from tests.stages.test_rte_split_stage import build
-
-    model, dm = build(tmp_path)
-    fit(model, dm, 1)  # the stage set up: its light, medium and skies
-    medium = detached(next(iter(model.scenes.pairs()))[0])
-    sky = model.sky_lights.illumination_of(model.light)
-    caches = {}
-    for name in ("eager", "compiled"):
-        cache = UncollidedCache(model.hparams.samples)
-        if name == "compiled":
-            cache.compile()
-        torch.manual_seed(1)
-        with inductor_config.patch(fallback_random=True):
-            cache.refresh(medium, model.light, sky)
-        caches[name] = model.light.uncollided.clone()
-    scale = float(caches["eager"].abs().max())
-    assert scale > 0
-    torch.testing.assert_close(caches["compiled"], caches["eager"], rtol=1e-4,
-                               atol=1e-5 * scale)

@@ -8,6 +8,7 @@ kept in log space (optical depth) and exponentiated once.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -71,17 +72,33 @@ def at_cell_centres(fn: Callable[[torch.Tensor], torch.Tensor], resolution: int,
     return out.reshape(resolution, resolution, resolution, *out.shape[1:])
 
 
+SPLIT_LOOKUPS_FROM = 4096
+"""Lookups of at least this many points on the CPU are split into one batch per thread:
+torch's 3D ``grid_sample`` runs its batches in parallel, but each batch on one thread."""
+
+
+def lookup_batches(points: int, device: torch.device) -> int:
+    """Batches a CPU lookup of ``points`` points is split into: the largest divisor of
+    ``points`` among 1 .. ``torch.get_num_threads()`` (1 on other devices and for small
+    lookups). Values do not depend on it; gradients of the grid are summed over the
+    batches, so their float rounding does."""
+    if device.type != "cpu" or points < SPLIT_LOOKUPS_FROM:
+        return 1
+    return math.gcd(points, torch.get_num_threads())
+
+
 def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) -> torch.Tensor:
     """Trilinear, cell-centred, edge-clamped lookup of ``grid`` (Nz, Ny, Nx, C) at world
     ``points`` (..., 3) in the box ``bbox`` (2, 3). Returns (..., C)."""
-    lead = points.shape[:-1]
+    lead, c = points.shape[:-1], grid.shape[-1]
     unit = (points - bbox[0]) / (bbox[1] - bbox[0]) * 2 - 1  # [-1, 1], x first as grid_sample wants
+    batches = lookup_batches(unit.numel() // 3, points.device)
     vol = grid.permute(3, 0, 1, 2).unsqueeze(0).to(points.dtype)
     out = F.grid_sample(
-        vol, unit.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border",
-        align_corners=False,
-    )
-    return out.reshape(grid.shape[-1], -1).T.reshape(*lead, grid.shape[-1])
+        vol.expand(batches, -1, -1, -1, -1), unit.reshape(batches, -1, 1, 1, 3),
+        mode="bilinear", padding_mode="border", align_corners=False,
+    )  # (batches, C, n / batches, 1, 1)
+    return out.reshape(batches, c, -1).transpose(1, 2).reshape(*lead, c)
 
 
 def optical_depth(

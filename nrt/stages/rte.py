@@ -220,10 +220,6 @@ class RTEStage(RadiativeTransferStage):
             return light, False
         return self.adjoint.photo_light(light), True
 
-    def compile_hot_code(self) -> None:
-        """The uncollided light's refresh (:meth:`UncollidedCache.compile`)."""
-        self.uncollided.compile()
-
     def refresh_uncollided(self, scenes) -> None:
         """Refresh the uncollided cache of the light of each (medium, light) pair of
         ``scenes`` in its medium (without gradient) when it is due

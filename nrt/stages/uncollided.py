@@ -34,12 +34,6 @@ class UncollidedCache:
         self.chunk = int(samples.get("uncollided_chunk", 2048))
         self.blend = float(samples.get("uncollided_blend", 1.0))
         self.fresh = False
-        self.project = uncollided_sh
-
-    def compile(self) -> None:
-        """Project with a ``torch.compile``d :func:`~nrt.physics.sky_light.uncollided_sh`
-        (the march, lookups and SH projection fused; :mod:`nrt.compile`)."""
-        self.project = torch.compile(uncollided_sh)
 
     def due(self, step: int) -> bool:
         """Whether ``step`` refreshes the cache: the first step, then every :attr:`every`."""
@@ -51,8 +45,8 @@ class UncollidedCache:
         into its cache (``light.set_uncollided``)."""
         sigma_t = extinction(medium)
         pts = light.cache_points()
-        coef = torch.cat([self.project(pts[i:i + self.chunk], sigma_t, light.bbox,
-                                       sky.rest, sky.sampler, sky.lights, light.degree,
-                                       self.directions, self.shadow_steps)
+        coef = torch.cat([uncollided_sh(pts[i:i + self.chunk], sigma_t, light.bbox,
+                                        sky.rest, sky.sampler, sky.lights, light.degree,
+                                        self.directions, self.shadow_steps)
                           for i in range(0, len(pts), self.chunk)])
         light.set_uncollided(coef, self.blend if self.fresh else 1.0)
