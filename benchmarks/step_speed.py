@@ -49,6 +49,15 @@ def one_run(stage: str, preset: str, setting: list[str], steps: int, warmup: int
         return json.loads(out.read_text())
 
 
+def commit_of(code: Path) -> str:
+    """``code``'s git commit, ``+ changes`` when its work tree differs from it."""
+    def git(*argv: str) -> str:
+        return subprocess.run(["git", "-C", str(code), *argv], capture_output=True,
+                              text=True).stdout.strip()
+    head = git("rev-parse", "--short", "HEAD") or str(code)
+    return head + (" + changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
 def summary(rows: list[dict], stages: list[str], names: tuple[str, str]) -> str:
     """The Markdown table of the rounds ``rows`` (stage, setting, ms, first_s)."""
     lines = ["| stage | setting | ms / step (mean +- sd over rounds) | first step s (rounds) "
@@ -102,7 +111,7 @@ def main(argv: list[str] | None = None) -> str:
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"preset": args.preset, "rounds": rows,
-                                         "code": {k: str(v) for k, v in codes.items()},
+                                         "code": {k: commit_of(v) for k, v in codes.items()},
                                          "machine": report["machine"]}, indent=1))
     return table
 
