@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import CONFIG_DIR, register_resolvers
 from nrt.data.render import dataset_name
-from nrt.run_dirs import LAST_CKPT, latest_run_with_checkpoint
+from nrt.run_dirs import LAST_CKPT, read_run_info, run_dataset
 
 SCENES = {
     "default": [],
@@ -61,15 +61,18 @@ def run_cli(command: str, args: list[str], out: Path) -> float:
 
 
 def train(stage: str, out: Path, preset: str, overrides: list[str],
-          logger: str = "[tensorboard,csv]") -> tuple[Path, float]:
+          logger: str = "[tensorboard,csv]", resume: Path | None = None) -> tuple[Path, float]:
     """``nrt-train stage=<stage> preset=<preset>`` through the CLI, runs under ``out``, the
-    datasets from the shared cache (:func:`output_dir`); the new run folder and the wall
-    seconds."""
+    datasets from the shared cache (:func:`output_dir`); the new run folder (with ``resume``,
+    a run folder under ``out``: that run continued in place) and the wall seconds."""
     before = set(out.glob(f"*/{stage}/*"))
     wall = run_cli("train", [f"stage={stage}", f"preset={preset}", f"logger={logger}",
                              f"paths.data_dir={output_dir() / 'datasets'}",
                              "trainer.enable_progress_bar=false", "render.progress=false",
-                             *overrides], out)
+                             *overrides,
+                             *((f"resume={resume / LAST_CKPT}",) if resume else ())], out)
+    if resume is not None:
+        return resume, wall
     (run,) = set(out.glob(f"*/{stage}/*")) - before
     return run, wall
 
@@ -81,26 +84,44 @@ def scene_dataset(preset: str, overrides: list[str]) -> str:
     return dataset_name(OmegaConf.to_container(scene, resolve=True), output_dir() / "datasets")
 
 
+def ea_runs(scene: str, dataset: str | None = None) -> list[Path]:
+    """The EA runs of ``scene`` under :func:`output_dir` that saved a checkpoint (those
+    trained on the dataset folder named ``dataset``, when given), newest checkpoint first."""
+    runs = [p.parent.parent for p in (output_dir() / scene / "ea").glob(f"*/{LAST_CKPT}")]
+    runs = [r for r in runs if dataset is None or run_dataset(r) == dataset]
+    return sorted(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime, reverse=True)
+
+
+def finished(run: Path) -> bool:
+    """Whether a run folder's training ran to its end (``run.json``'s ``finished_step``)."""
+    return read_run_info(run).get("finished_step") is not None
+
+
 def newest_checkpoint(scene: str, dataset: str | None = None) -> Path | None:
-    """The last checkpoint of the newest EA run of ``scene`` under :func:`output_dir`
-    (among those trained on the dataset folder named ``dataset``, when given)."""
-    run = latest_run_with_checkpoint(output_dir() / scene / "ea", dataset)
+    """The last checkpoint of the newest finished EA run of ``scene`` under
+    :func:`output_dir` (among those trained on the dataset folder named ``dataset``, when
+    given); a run killed before its end is no start."""
+    run = next((r for r in ea_runs(scene, dataset) if finished(r)), None)
     return (run / LAST_CKPT).resolve() if run is not None else None
 
 
 def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None,
                   ea_steps: int | None = None) -> Path:
     """The EA checkpoint of the scene named ``name`` (its EA runs under :func:`output_dir`):
-    the newest one trained on the photos of ``preset`` and ``overrides`` (default: the
-    benchmark scene ``name``'s, :data:`SCENES`; another photo seed needs its own name),
-    else a new stage-1 run's on them (of ``ea_steps`` steps; None: the preset's)."""
+    the newest finished one trained on the photos of ``preset`` and ``overrides`` (default:
+    the benchmark scene ``name``'s, :data:`SCENES`; another photo seed needs its own name);
+    else the newest killed one resumed to its end; else a new stage-1 run's on them (of
+    ``ea_steps`` steps; None: the preset's)."""
     overrides = list(SCENES[name] if overrides is None else overrides)
-    found = newest_checkpoint(name, scene_dataset(preset, overrides))
+    dataset = scene_dataset(preset, overrides)
+    found = newest_checkpoint(name, dataset)
     if found is not None:
         return found
     steps = [] if ea_steps is None else [f"budget.ea.steps={int(ea_steps)}"]
-    run = train("ea", output_dir(), preset, [*overrides, *steps])[0]
-    return run / "checkpoints" / "last.ckpt"
+    killed = ea_runs(name, dataset)
+    run = train("ea", output_dir(), preset, [*overrides, *steps],
+                resume=killed[0] if killed else None)[0]
+    return (run / LAST_CKPT).resolve()
 
 
 def metric_rows(run: Path) -> list[dict]:
