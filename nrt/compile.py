@@ -3,13 +3,14 @@ backend on the CPU, Triton on CUDA), with an eager fallback where no compiler is
 
 What a stage compiles is its own choice (:meth:`nrt.stages.stage.Stage.compile_hot_code`):
 stage 1 compiles its hash-grid field (1.23x the steps per second at ``cpu`` on 2 cores,
-benchmarks/README.md); stage 2 compiles nothing (its uncollided-light refresh, compiled, spent minutes compiling
-and recompiling at ``cpu``: 12.8 s a step against 0.51 eager). Compiled code fuses chains of element-wise
-ops, so it computes the same quantities with other float rounding: a run is reproducible
-per setting, not bit-identical across the two settings. Compiling costs tens of seconds in
-the first step (counted in the run's training seconds); inductor's kernels are cached under
-``cache_dir`` (by default ``<paths.output_dir>/.cache/inductor``), so a second run of the
-same code compiles in seconds.
+benchmarks/README.md); stage 2 compiles nothing (its uncollided-light refresh, compiled,
+spent minutes compiling and recompiling at ``cpu``: 12.8 s a step against 0.51 eager).
+Compiled code fuses chains of element-wise ops, so it computes the same quantities with
+other float rounding: a run is reproducible per setting, not bit-identical across the two
+settings. Compiling costs tens of seconds in the first step (counted in the run's training
+seconds); inductor's kernels are cached under ``cache_dir`` (by default
+``<paths.output_dir>/.cache/inductor``), so a second run of the same code compiles in
+seconds.
 """
 
 from __future__ import annotations
