@@ -184,17 +184,11 @@ class StepWindows(L.Callback):
         self.plain_s = self.profiled_s = self.first_step_s = math.nan
         self.profile: torch.profiler.profile | None = None
 
-    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
-        if self.done == 0:
-            self.mark = time.perf_counter()
-
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         self.done += 1
         if pl_module.device.type == "cuda":
             torch.cuda.synchronize(pl_module.device)
         now = time.perf_counter()
-        if self.done == 1:  # the first step holds compile=true's compilation
-            self.first_step_s = now - self.mark
         if self.done == self.warmup:
             self.mark = now
         elif self.done == self.warmup + self.steps:
@@ -252,6 +246,9 @@ def train(args: argparse.Namespace) -> tuple[StepWindows, L.LightningModule, int
             max_steps=steps, enable_checkpointing=False, limit_val_batches=0,
             enable_progress_bar=False, num_sanity_val_steps=0)
         trainer.fit(model, datamodule=datamodule)
+    # the first step's seconds (compile=true's compilation), as nrt.callbacks.CompileHotCode
+    # logs them
+    windows.first_step_s = float(trainer.callback_metrics.get("time/first_step_s", math.nan))
     if windows.profile is None or math.isnan(windows.profiled_s):
         sys.exit(f"training stopped after {windows.done} steps, before the profiled window "
                  f"ended ({args.warmup + 2 * args.steps} steps)")
