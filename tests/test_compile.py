@@ -20,6 +20,14 @@ pytestmark = pytest.mark.integration
 HAVE_CXX = missing_compiler("cpu") is None
 
 
+@pytest.fixture
+def no_cache_choice(monkeypatch):
+    """``TORCHINDUCTOR_CACHE_DIR`` unset for the test and restored after it (setenv records
+    the original state, so what the test's code sets is undone too)."""
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", "")
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR")
+
+
 def test_no_compiler_on_the_path_is_named_with_the_fix(monkeypatch, tmp_path):
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.delenv("CXX", raising=False)
@@ -28,8 +36,7 @@ def test_no_compiler_on_the_path_is_named_with_the_fix(monkeypatch, tmp_path):
     assert "(my-c++;" in missing_compiler("cpu")
 
 
-def test_the_kernel_cache_goes_where_asked_unless_the_user_chose(monkeypatch, tmp_path):
-    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+def test_the_kernel_cache_goes_where_asked_unless_the_user_chose(no_cache_choice, tmp_path):
     use_cache(str(tmp_path / "cache"))
     assert (tmp_path / "cache").is_dir()
     import os
@@ -58,6 +65,23 @@ def test_without_a_compiler_the_run_trains_eagerly_and_says_so(monkeypatch, tmp_
     assert not callback.compiled and trainer.global_step == 2
     assert model.field._compiled_call_impl is None  # nn.Module.compile was not called
     assert "no C++ compiler found" in caplog.text and "eager code" in caplog.text
+    assert float(trainer.callback_metrics["time/first_step_s"]) > 0
+
+
+@pytest.mark.skipif(not HAVE_CXX, reason="no C++ compiler for inductor here")
+def test_with_a_compiler_the_stage_compiles_its_field_and_caches_where_asked(no_cache_choice,
+                                                                             tmp_path):
+    """The callback's setup compiles in place (compilation itself waits for the first call,
+    so nothing is built here) and points inductor's cache at ``cache_dir``."""
+    model = EAModule(density_field={"_target_": "nrt.modules.fields.ea_field.EAField",
+                                    "_partial_": True, "hidden": 16,
+                                    "hash_grid": {"levels": 4, "log2_table_size": 12}})
+    callback = CompileHotCode(enabled=True, cache_dir=str(tmp_path / "cache"))
+    callback.setup(L.Trainer(accelerator="cpu", logger=False), model, "fit")
+    assert callback.compiled and model.field._compiled_call_impl is not None
+    assert (tmp_path / "cache").is_dir()
+    keys = set(model.state_dict())
+    assert keys and not any("_orig_mod" in k for k in keys)  # checkpoints keep their keys
 
 
 def small_field() -> EAField:
