@@ -23,6 +23,8 @@ Optional, with these defaults:
 - :attr:`Stage.voxel_media`: whether the stage learns voxel media, which priors on voxels
   read (:class:`~nrt.losses.context.StepContext`'s ``voxels``); False.
 - :meth:`Stage.export`: files written into the run folder after training; none.
+- :meth:`Stage.compile_hot_code`: what ``compile=true`` compiles in place before training
+  (:mod:`nrt.compile`); nothing.
 
 Every checkpoint a stage saves records nrt's checkpoint format, and a resume from one of
 another format is refused (:mod:`nrt.stages.checkpoints`); a subclass that overrides
