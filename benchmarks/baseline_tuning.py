@@ -1,19 +1,21 @@
-"""Tuning the path-tracing baseline (``stage=dpt``) on the tuning scenes, with a table kept.
+"""Tuning the path-tracing baseline (``stage=dpt``) and stage 2's levers (``--stage rte``) on
+the tuning scenes, with a table kept.
 
-Each configuration of ``benchmarks/baseline_tuning.yaml`` (a list of Hydra overrides of the
-preset's defaults) trains ``stage=dpt`` for ``--budget-s`` training seconds from the scene's
-EA checkpoint (the newest under ``outputs/``, else a new stage-1 run), with the property
-MSE measured every ``--every-s`` training seconds outside the clock. One row per run is
-appended to the table (``docs/data/baseline_tuning.csv``): the end's property MSE x100,
-the best sigma_t on the way and when, steps and seconds. A run whose (config, scene,
+Each configuration of a round (a list of Hydra overrides of the preset's defaults; the
+baseline's rounds in ``benchmarks/baseline_tuning.yaml``, stage 2's in
+``benchmarks/stage2_tuning.yaml``) trains the stage for ``--budget-s`` training seconds
+from the scene's EA checkpoint (the newest under ``outputs/``, else a new stage-1 run),
+with the property MSE measured every ``--every-s`` training seconds outside the clock. One
+row per run is appended to the stage's table (``docs/data/baseline_tuning.csv`` or
+``docs/data/stage2_tuning.csv``): the end's property MSE x100, the best sigma_t on the way
+and when, steps and seconds. A run whose (round, config, scene,
 preset, budget) row exists is skipped, so a killed sweep resumes where it stopped.
-``--stage rte`` runs stage 2 at its defaults under the same budget for reference
-(config ``stage2``). Only the tuning scenes are accepted: nothing measured on a blind
-scene may choose a default.
+Only the tuning scenes are accepted: nothing measured on a blind scene may choose a default.
 
-    python -m benchmarks.baseline_tuning --round round1 [--configs a,b] [--scenes default]
-        [--budget-s 300] [--every-s 15] [--preset cpu] [--table CSV] [--out DIR]
-    python -m benchmarks.baseline_tuning --summary [--table CSV]
+    python -m benchmarks.baseline_tuning --round round1 [--stage dpt|rte] [--configs a,b]
+        [--scenes default] [--budget-s 300] [--every-s 15] [--preset cpu] [--table CSV]
+        [--out DIR]
+    python -m benchmarks.baseline_tuning --summary [--stage dpt|rte] [--table CSV]
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ import yaml
 from benchmarks.common import SCENES, TUNING_SCENES, ea_checkpoint, output_dir, series, train
 
 ROOT = Path(__file__).resolve().parent.parent
-CONFIGS = Path(__file__).with_suffix(".yaml")
-TABLE = ROOT / "docs" / "data" / "baseline_tuning.csv"
+CONFIGS = {"dpt": Path(__file__).with_suffix(".yaml"),
+           "rte": Path(__file__).with_name("stage2_tuning.yaml")}
+TABLES = {"dpt": ROOT / "docs" / "data" / "baseline_tuning.csv",
+          "rte": ROOT / "docs" / "data" / "stage2_tuning.csv"}
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 COLUMNS = ("round", "config", "stage", "scene", "preset", "budget_s", "seconds", "steps",
            *(f"mse_{k}_x100" for k in PROPERTIES), "start_sigma_t", "best_sigma_t",
@@ -110,32 +114,32 @@ def main() -> None:
     parser.add_argument("--budget-s", type=float, default=300.0)
     parser.add_argument("--every-s", type=float, default=15.0)
     parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--table", type=Path, default=TABLE)
+    parser.add_argument("--table", type=Path, help="default: docs/data/baseline_tuning.csv "
+                        "(dpt) or docs/data/stage2_tuning.csv (rte)")
     parser.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "tuning")
     parser.add_argument("--summary", action="store_true", help="print the table and stop")
     args = parser.parse_args()
+    table = args.table or TABLES[args.stage]
     if args.summary:
-        print(summary(read_table(args.table)))
+        print(summary(read_table(table)))
         return
     scenes = args.scenes.split(",")
     blind = [s for s in scenes if s not in TUNING_SCENES]
     if blind:
         parser.error(f"--scenes {','.join(blind)}: tuning runs only on the tuning scenes "
                      f"({', '.join(TUNING_SCENES)}); a blind scene may not choose a default.")
-    rounds = yaml.safe_load(CONFIGS.read_text())
-    if args.stage == "rte":
-        configs = {"stage2": []}
-    else:
-        if args.round not in rounds:
-            parser.error(f"--round {args.round}: {CONFIGS.name} has {', '.join(rounds)}.")
-        configs = rounds[args.round]
-        if args.configs:
-            unknown = set(args.configs.split(",")) - set(configs)
-            if unknown:
-                parser.error(f"--configs: {', '.join(sorted(unknown))} not in {args.round}.")
-            configs = {k: configs[k] for k in args.configs.split(",")}
+    configs_file = CONFIGS[args.stage]
+    rounds = yaml.safe_load(configs_file.read_text())
+    if args.round not in rounds:
+        parser.error(f"--round {args.round}: {configs_file.name} has {', '.join(rounds)}.")
+    configs = rounds[args.round]
+    if args.configs:
+        unknown = set(args.configs.split(",")) - set(configs)
+        if unknown:
+            parser.error(f"--configs: {', '.join(sorted(unknown))} not in {args.round}.")
+        configs = {k: configs[k] for k in args.configs.split(",")}
     done = {(r["round"], r["config"], r["scene"], r["preset"], float(r["budget_s"]))
-            for r in read_table(args.table)}
+            for r in read_table(table)}
     budget = float(args.budget_s)
     for scene in scenes:
         ckpt = ea_checkpoint(scene, args.preset)
@@ -151,10 +155,10 @@ def main() -> None:
             row = {"round": args.round, "config": name, "stage": args.stage, "scene": scene,
                    "preset": args.preset, "budget_s": budget,
                    "overrides": " ".join(overrides), **run_row(run)}
-            append_row(args.table, row)
+            append_row(table, row)
             print(f"{name} on {scene}: sigma_t {row['mse_sigma_t_x100']} sigma_s "
                   f"{row['mse_sigma_s_x100']} ({row['steps']} steps) {run}", flush=True)
-    print(summary(read_table(args.table)))
+    print(summary(read_table(table)))
 
 
 if __name__ == "__main__":

@@ -19,12 +19,13 @@ class AssertFinite(L.Callback):
             assert torch.isfinite(p).all(), name
 
 
-def fit(model: L.LightningModule, dm: L.LightningDataModule, steps: int) -> L.Trainer:
+def fit(model: L.LightningModule, dm: L.LightningDataModule, steps: int,
+        *callbacks: L.Callback) -> L.Trainer:
     """``steps`` training steps on the CPU without logging, checkpoints or validation,
-    under :class:`AssertFinite`."""
+    under :class:`AssertFinite` (and ``callbacks``)."""
     trainer = L.Trainer(max_steps=steps, accelerator="cpu", logger=False,
                         enable_checkpointing=False, enable_progress_bar=False,
                         num_sanity_val_steps=0, limit_val_batches=0, inference_mode=False,
-                        callbacks=[AssertFinite()])
+                        callbacks=[AssertFinite(), *callbacks])
     trainer.fit(model, datamodule=dm)
     return trainer

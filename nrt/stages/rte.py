@@ -55,7 +55,7 @@ from nrt.errors import ConfigError
 from nrt.losses.context import StepContext
 from nrt.losses.objective import Objective, build_objectives, objective_class
 from nrt.losses.transport import unrolled_inscatter
-from nrt.modules.fields.coarse_to_fine import decaying_lr
+from nrt.modules.fields.coarse_to_fine import decaying_lr, ramp_in
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
 from nrt.modules.fields.voxel_medium import detached, extinction
 from nrt.modules.renderers.exit import exit_radiance
@@ -86,7 +86,7 @@ class RTEStage(RadiativeTransferStage):
     def __init__(self, effects: dict, light_field: Callable[..., ScatteredLightField] | dict,
                  medium: Callable[..., VoxelisedMedium] | dict, density: dict,
                  weights: dict, samples: dict, lr: dict, lr_final_factor: float = 0.1,
-                 light_warmup: float = 0.05,
+                 light_warmup: float = 0.05, medium_rampup: float = 0.0,
                  sun: dict | None = None, eval_chunk: int = 4096,
                  property_resolution: int | None = None, coupling: dict | None = None,
                  objectives: Mapping[str, Callable[..., Objective] | dict] | None = None,
@@ -108,6 +108,9 @@ class RTEStage(RadiativeTransferStage):
             self.objectives = {name: unit for name, unit in self.objectives.items()
                                if not unit.medium_only}
         check_learning_rates(lr, "model.lr", ("light", "medium"))
+        if not (isinstance(medium_rampup, (int, float)) and 0 <= medium_rampup < 1):
+            raise ConfigError(f"model.medium_rampup={medium_rampup}: must be a share of the run "
+                              "in [0, 1) (0: the medium's full rate at the light warm-up's end).")
         kind = make_scenes.func  # the source's class: the protocols of its light and medium
         self.light = build(make_light, kind.LIGHT_PROTOCOL, "light_field", kind.FITS,
                            effects=effects)
@@ -152,12 +155,19 @@ class RTEStage(RadiativeTransferStage):
         if self.adjoint is not None:
             groups.append({"params": list(self.adjoint.parameters()), "lr": lr["light"]})
         if self.learns_medium:
-            groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"]})
+            groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"],
+                           "ramps_in": True})
         return groups + self.scenes.param_groups()
+
+    def medium_ramp(self) -> float:
+        """The factor of the medium's rate (:func:`~nrt.modules.fields.coarse_to_fine.ramp_in`):
+        0 during the light warm-up, then rising to 1 over ``medium_rampup`` of the run."""
+        return ramp_in(self.progress(), self.hparams.light_warmup, self.hparams.medium_rampup)
 
     def configure_optimizers(self):
         opt = torch.optim.Adam(self.param_groups())
-        sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress)
+        ramp = self.medium_ramp if self.hparams.medium_rampup > 0 else None
+        sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress, ramp)
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
     # ------------------------------------------------------------- transport

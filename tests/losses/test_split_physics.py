@@ -24,6 +24,7 @@ from nrt.mitsuba.variant import select_variant
 from nrt.modules.fields.coarse_to_fine import (
     check_schedule,
     decaying_lr,
+    ramp_in,
     resample_parameter,
     resolution_at,
 )
@@ -420,6 +421,26 @@ def test_coarse_to_fine_schedule_and_restarted_moments():
         sched.step()
         assert opt.param_groups[0]["lr"] == pytest.approx(0.1 * factor)
 
+
+
+def test_a_ramp_scales_only_the_groups_marked_to_ramp_in():
+    """``ramp_in`` rises linearly from 0 at its start to 1 after its length; with a ramp,
+    ``decaying_lr`` multiplies the marked groups' decayed rate by it and leaves the others
+    at the decay alone."""
+    assert [ramp_in(p, 0.2, 0.4) for p in (0.0, 0.2, 0.4, 0.6, 0.9)] == \
+        pytest.approx([0.0, 0.0, 0.5, 1.0, 1.0])
+    assert (ramp_in(0.1, 0.2, 0.0), ramp_in(0.2, 0.2, 0.0)) == (0.0, 1.0)
+    light, medium = torch.nn.Parameter(torch.ones(3)), torch.nn.Parameter(torch.ones(3))
+    opt = torch.optim.Adam([{"params": [light], "lr": 0.1},
+                            {"params": [medium], "lr": 0.2, "ramps_in": True}])
+    progress = [0.0]
+    sched = decaying_lr(opt, 0.1, lambda: progress[0], lambda: ramp_in(progress[0], 0.2, 0.4))
+    for p in (0.1, 0.4, 0.8):
+        progress[0] = p
+        sched.step()
+        decay = 0.1 ** p
+        assert opt.param_groups[0]["lr"] == pytest.approx(0.1 * decay)
+        assert opt.param_groups[1]["lr"] == pytest.approx(0.2 * decay * ramp_in(p, 0.2, 0.4))
 
 @pytest.mark.slow  # ~25 s: two Mitsuba renders and a 3 x 3 supersampled reference
 def test_first_scattering_image_matches_mitsuba_order_one():

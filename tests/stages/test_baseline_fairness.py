@@ -17,10 +17,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+import yaml
 from omegaconf import OmegaConf
 
 from nrt.callbacks import PropertyMetrics, WallClock
 from nrt.cameras import Intrinsics
+from nrt.cli.checks import check_budget, check_objectives
+from nrt.cli.shapes import check_arguments
 from nrt.data.spec import resolve_scene, spec_hash
 from nrt.errors import SceneError
 from nrt.modules.fields.voxel_medium import VoxelMedium
@@ -265,6 +268,31 @@ def test_tuning_refuses_a_blind_scene(tmp_path):
     assert proc.returncode == 2
     assert "heldout2" in proc.stderr and "tuning scenes" in proc.stderr
     assert not (tmp_path / "t.csv").exists()
+
+
+@pytest.mark.slow  # ~10 s: one composition per distinct configuration
+@pytest.mark.parametrize("stage", ["dpt", "rte"])
+def test_every_tuning_configuration_composes(stage):
+    """Each configuration of each round of the stage's tuning file is a list of overrides
+    that composes with the stage at the cpu preset, passes the config checks and sets
+    each overridden key to its value."""
+    from benchmarks.baseline_tuning import CONFIGS
+
+    rounds = yaml.safe_load(CONFIGS[stage].read_text())
+    assert rounds and all(isinstance(configs, dict) and configs for configs in rounds.values())
+    distinct = {tuple(overrides): name for configs in rounds.values()
+                for name, overrides in configs.items()}
+    for overrides, name in distinct.items():
+        cfg = compose_config("train", [f"stage={stage}", "preset=cpu", *overrides])
+        check_budget(cfg)
+        check_objectives(cfg)
+        check_arguments(cfg)
+        for override in overrides:
+            key, value = override.split("=", 1)
+            actual = OmegaConf.select(cfg, key)
+            if OmegaConf.is_config(actual):
+                actual = OmegaConf.to_container(actual, resolve=True)
+            assert actual == yaml.safe_load(value), (name, key)
 
 
 def test_several_views_a_step_average_their_gradients():

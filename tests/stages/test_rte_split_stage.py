@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 
+import lightning as L
 import numpy as np
 import pytest
 import torch
@@ -168,6 +169,41 @@ def test_medium_waits_for_the_light_field_and_grows_coarse_to_fine(tmp_path, mon
     assert {s for s, name in called if name == "transport"} == set(range(10))
     assert isinstance(model.medium, VoxelMedium) and model.medium.resolution == 4
 
+
+
+class RecordRates(L.Callback):
+    """The light field's and the medium's learning rates at each training step."""
+
+    def __init__(self):
+        self.rates: list[tuple[float, float]] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        groups = trainer.optimizers[0].param_groups
+        medium = next(g for g in groups if g.get("ramps_in"))
+        self.rates.append((groups[0]["lr"], medium["lr"]))
+
+
+@pytest.mark.parametrize("rampup", [0.0, 0.4])
+def test_the_medium_rate_ramps_in_after_the_warm_up(tmp_path, rampup):
+    """``model.medium_rampup``: the medium's rate (equal to the light field's at the
+    config's lr) rises linearly from 0 at the light warm-up's end to the full decayed
+    rate over that share of the run; 0 keeps it equal to the light field's throughout."""
+    model, dm = build(tmp_path, "budget.rte.light_warmup=0.2", f"model.medium_rampup={rampup}")
+    assert model.hparams.lr["light"] == model.hparams.lr["medium"]
+    record = RecordRates()
+    trainer = fit(model, dm, 10, record)
+    assert trainer.global_step == 10
+    shares = [medium / light for light, medium in record.rates]
+    if rampup == 0:
+        assert shares == pytest.approx([1.0] * 10)
+        return
+    assert shares == sorted(shares) and shares[-1] == pytest.approx(1.0)
+    assert shares[0] == 0.0 and sum(0 < s < 1 for s in shares) >= 3, shares
+
+
+def test_a_medium_rampup_outside_the_run_is_refused(tmp_path):
+    with pytest.raises(InstantiationException, match=r"model.medium_rampup=1.5"):
+        build(tmp_path, "model.medium_rampup=1.5")
 
 def test_the_extinction_prior_is_the_mean_extinction_and_lowers_it(tmp_path, monkeypatch):
     """``losses.weights.extinction_prior``: its loss is the mean over voxels and channels of

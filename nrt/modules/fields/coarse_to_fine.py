@@ -44,8 +44,31 @@ def resample_parameter(param: torch.nn.Parameter, optimizer: torch.optim.Optimiz
 
 
 def decaying_lr(optimizer: torch.optim.Optimizer, final_factor: float,
-                progress: Callable[[], float]) -> torch.optim.lr_scheduler.LambdaLR:
+                progress: Callable[[], float], ramp: Callable[[], float] | None = None
+                ) -> torch.optim.lr_scheduler.LambdaLR:
     """Every group's learning rate times ``final_factor ** progress()``: an exponential decay
     over the run's steps or its ``budget_s`` (stepped once per training step). A constant
-    rate leaves the voxel grids walking in their gradients' noise at the end of a run."""
-    return torch.optim.lr_scheduler.LambdaLR(optimizer, lambda _: final_factor ** progress())
+    rate leaves the voxel grids walking in their gradients' noise at the end of a run.
+    With ``ramp``, the groups marked ``ramps_in`` also take ``ramp()`` (in [0, 1]) as a
+    factor (:func:`ramp_in`)."""
+    def decay(_: int) -> float:
+        return final_factor ** progress()
+
+    if ramp is None:
+        return torch.optim.lr_scheduler.LambdaLR(optimizer, decay)
+
+    def ramped(step: int) -> float:
+        return decay(step) * ramp()
+    return torch.optim.lr_scheduler.LambdaLR(
+        optimizer, [ramped if group.get("ramps_in") else decay
+                    for group in optimizer.param_groups])
+
+
+def ramp_in(progress: float, start: float, length: float) -> float:
+    """A linear ramp from 0 at ``start`` to 1 at ``start + length`` (shares of the run):
+    Adam's first steps on freshly started moments move every coordinate by about the
+    learning rate, whatever the gradient's size; a ramp lets the moments settle first.
+    ``length`` 0: 1 from ``start`` on."""
+    if progress < start:
+        return 0.0
+    return 1.0 if length <= 0 else min(1.0, (progress - start) / length)
