@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -114,13 +115,12 @@ def seconds_to_reach(curve: dict, key: str, level: float) -> float:
 
 
 def mean_spread(values: list[float]) -> str:
-    """``mean +- half range`` over realisations (the value alone for one)."""
+    """``mean ± sample standard deviation`` over realisations (the value alone for one)."""
     values = [v for v in values if not math.isnan(v)]
     if not values:
         return "-"
-    mean = sum(values) / len(values)
-    return f"{mean:.3f}" if len(values) == 1 else \
-        f"{mean:.3f} ± {(max(values) - min(values)) / 2:.3f}"
+    mean = statistics.fmean(values)
+    return f"{mean:.3f}" if len(values) == 1 else f"{mean:.3f} ± {statistics.stdev(values):.3f}"
 
 
 def scene_means(results: dict, method: str, key: str) -> dict[str, float]:
@@ -177,7 +177,7 @@ def over_scenes(results: dict) -> list[str]:
 
 def table(results: dict) -> str:
     """Markdown: per scene and method, the start's sigma_t and the end's property MSE x100
-    and re-render metrics, mean and half range over photo realisations; then stage 2's and
+    and re-render metrics, mean and sample sd over photo realisations; then stage 2's and
     the baseline's time to reach each other's final sigma_t."""
     scenes = list(dict.fromkeys(k[0] for k in results))
     head = ["scene", "method", "realisations", "start sigma_t", "sigma_a", "sigma_s",

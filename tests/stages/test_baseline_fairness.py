@@ -205,7 +205,7 @@ def _record(folder: Path, method: str, times, sigma_t, end_psnr: float) -> None:
 
 def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     """``fair_comparison redraw`` needs only the committed CSV and JSON files: the table
-    gives mean and half range over realisations (one of them photos of the scalar variant),
+    gives mean and sample sd over realisations (one of them photos of the scalar variant),
     stage 2 against the baseline over the blind scenes and over all, and each method's time
     to reach the other's final sigma_t (never, when it does not)."""
     data = tmp_path / "data"
@@ -227,10 +227,10 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     assert figure.stat().st_size > 10_000
     text = table.read_text()
     assert "| default | stage 2 (nrt) | 2 | 9.000 ± 0.000 | 1.000 ± 0.000 | 2.000 ± 0.000 | " \
-        "2.100 ± 0.100 |" in text
+        "2.100 ± 0.141 |" in text  # sd of 2.0 and 2.2: 0.2 / sqrt(2)
     assert "| default | path tracing (baseline) | 2 | 9.000 ± 0.000 | 1.000 ± 0.000 | " \
         "2.000 ± 0.000 | 6.000 ± 0.000 |" in text
-    assert "35.500 ± 0.500" in text  # the PSNR over the two realisations
+    assert "35.500 ± 0.707" in text  # the PSNR over the two realisations
     # stage 2 reaches the baseline's end (6.0) at 10 s; the baseline never reaches 2.0 / 2.2
     assert "| default | photo0 | 10 | never (> 40) | 40 |" in text
     assert "| default | photo2_scalar_rgb | 10 | never (> 40) | 40 |" in text
