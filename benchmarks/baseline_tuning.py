@@ -26,7 +26,15 @@ from pathlib import Path
 
 import yaml
 
-from benchmarks.common import SCENES, TUNING_SCENES, ea_checkpoint, output_dir, series, train
+from benchmarks.common import (
+    SCENES,
+    TUNING_SCENES,
+    add_budget_arguments,
+    ea_checkpoint,
+    output_dir,
+    series,
+    train,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = {"dpt": Path(__file__).with_suffix(".yaml"),
@@ -111,9 +119,7 @@ def main() -> None:
     parser.add_argument("--configs", help="comma-separated names of the round (default: all)")
     parser.add_argument("--scenes", default="default")
     parser.add_argument("--stage", default="dpt", choices=("dpt", "rte"))
-    parser.add_argument("--budget-s", type=float, default=300.0)
-    parser.add_argument("--every-s", type=float, default=15.0)
-    parser.add_argument("--preset", default="cpu")
+    add_budget_arguments(parser, budget_s=300.0, every_s=15.0)
     parser.add_argument("--table", type=Path, help="default: docs/data/baseline_tuning.csv "
                         "(dpt) or docs/data/stage2_tuning.csv (rte)")
     parser.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "tuning")

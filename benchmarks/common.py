@@ -3,6 +3,7 @@ nrt's commands run through the real CLI with their runs and metrics found again.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import os
 import subprocess
@@ -33,6 +34,15 @@ TUNING_SCENES = ("default", "default_seed1", "default_seed2", "default_seed3")
 """The only scenes any default of nrt (stage 2's or the baseline's) is chosen on."""
 BLIND_SCENES = ("heldout", "heldout2", "heldout3", "heldout4")
 """Scenes written once and never tuned on: they only report how the defaults carry over."""
+
+
+def add_budget_arguments(parser: argparse.ArgumentParser, budget_s: float,
+                         every_s: float) -> None:
+    """The options of an equal-time run: ``--budget-s`` training seconds per method, the
+    property MSE every ``--every-s`` training seconds (outside the clock), ``--preset``."""
+    parser.add_argument("--budget-s", type=float, default=budget_s)
+    parser.add_argument("--every-s", type=float, default=every_s)
+    parser.add_argument("--preset", default="cpu")
 
 
 def compose_train(overrides: list[str]) -> DictConfig:

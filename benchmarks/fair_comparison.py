@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import BLIND_SCENES, SCENES, ea_checkpoint, output_dir
+from benchmarks.common import BLIND_SCENES, SCENES, add_budget_arguments, ea_checkpoint, output_dir
 from benchmarks.equal_time import (
     EVAL_KEYS,
     PROPERTIES,
@@ -274,9 +274,7 @@ def main() -> None:
                           "fallback where LLVM is missing); its realisations are kept apart")
     run.add_argument("--methods", default="rte,dpt,rte_paper")
     run.add_argument("--paper-on", default="default", help="scenes that run rte_paper too")
-    run.add_argument("--budget-s", type=float, default=600.0)
-    run.add_argument("--every-s", type=float, default=25.0)
-    run.add_argument("--preset", default="cpu")
+    add_budget_arguments(run, budget_s=600.0, every_s=25.0)
     run.add_argument("--data", type=Path, default=DATA)
     run.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "comparison")
     redraw = sub.add_parser("redraw", help="figure and table from the recorded data")

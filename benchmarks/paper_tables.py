@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from benchmarks.common import ea_checkpoint, output_dir
+from benchmarks.common import add_budget_arguments, ea_checkpoint, output_dir
 from benchmarks.equal_time import PROPERTIES, read_record, run_method, summary_line
 from benchmarks.quickstart_slices import small
 from nrt.data.dataset import GROUND_TRUTH_FILE
@@ -234,9 +234,7 @@ def main() -> None:
     run.add_argument("--ablation-scenes", type=int, help="default: the sets file's")
     run.add_argument("--ablations", help="comma-separated names (default: all of the file's)")
     run.add_argument("--methods", help="comma-separated names (default: all of the file's)")
-    run.add_argument("--budget-s", type=float, default=600.0)
-    run.add_argument("--every-s", type=float, default=50.0)
-    run.add_argument("--preset", default="cpu")
+    add_budget_arguments(run, budget_s=600.0, every_s=50.0)
     run.add_argument("--ea-steps", type=int, help="steps of a new scene's EA run (default: "
                      "the preset's)")
     run.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "paper_tables")
