@@ -242,7 +242,12 @@ def figure(results: dict, path: Path) -> Path:
             ax.set_yscale("log")
             for axis in (ax.xaxis, ax.yaxis):
                 axis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
-                axis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+            # an error axis spanning under a decade has no labelled power of ten: its minor
+            # ticks (2, 3, ... x 10^k) are labelled instead
+            ax.yaxis.set_minor_formatter(matplotlib.ticker.LogFormatter(
+                labelOnlyBase=False, minor_thresholds=(1, 0.4)))
+            ax.tick_params(axis="y", which="minor", labelsize=7)
             ax.grid(True, which="both", alpha=0.3)
             ax.set_title(f"{scene}: {key} MSE x100", fontsize=9)
             if row == len(scenes) - 1:
