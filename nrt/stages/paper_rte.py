@@ -26,6 +26,7 @@ from nrt.errors import ConfigError
 from nrt.losses.context import StepContext
 from nrt.losses.objective import Objective, build_objectives
 from nrt.losses.samplers import DensityPointSampler
+from nrt.modules.fields.coarse_to_fine import decaying_lr, ramp_in
 from nrt.modules.fields.protocols import ModulatedMedium, RadianceField, build
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import transmitted_background, vre_render
@@ -91,18 +92,15 @@ class PaperRTEStage(RadiativeTransferStage):
             density = self.medium.density_field
             dens_ids = {id(p) for p in density.parameters()} if density is not None else set()
             modulation = [p for p in self.medium.parameters() if id(p) not in dens_ids]
-            groups.append({"params": modulation, "lr": lr["medium"]})
+            groups.append({"params": modulation, "lr": lr["medium"], "ramps_in": True})
             if density is not None and self.hparams.density.get("train", False):
-                groups.append({"params": list(density.parameters()), "lr": lr["density"]})
+                groups.append({"params": list(density.parameters()), "lr": lr["density"],
+                               "ramps_in": True})
         opt = torch.optim.Adam(groups)
-        factor, warmup = self.hparams.lr_final_factor, self.hparams.medium_warmup
-
-        def decay(s: int) -> float:  # over the steps, or over budget_s in equal-time runs
-            return factor ** self.progress()
-
-        def medium(s: int) -> float:  # the medium waits until the light field is plausible
-            return decay(s) if self.progress() >= warmup else 0.0
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, [decay] + [medium] * (len(groups) - 1))
+        warmup = self.hparams.medium_warmup
+        # the medium waits (rate 0) until the light field is plausible, then takes the decay
+        sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress,
+                            lambda: ramp_in(self.progress(), warmup, 0.0))
         return [opt], [{"scheduler": sched, "interval": "step"}]
 
     def step_context(self, scenes) -> StepContext:
