@@ -8,8 +8,10 @@ from the scene's EA checkpoint (the newest under ``outputs/``, else a new stage-
 with the property MSE measured every ``--every-s`` training seconds outside the clock. One
 row per run is appended to the stage's table (``docs/data/baseline_tuning.csv`` or
 ``docs/data/stage2_tuning.csv``): the end's property MSE x100, the best sigma_t on the way
-and when, steps and seconds. A run whose (round, config, scene,
-preset, budget) row exists is skipped, so a killed sweep resumes where it stopped.
+and when, steps and seconds. A stage-2 configuration may be a hybrid: stage 2 for part of
+the budget, then the path-tracing baseline from stage 2's grids for the rest
+(:func:`run_config`). A run whose (round, config, scene, preset, budget) row exists is
+skipped, so a killed sweep resumes where it stopped.
 Only the tuning scenes are accepted: nothing measured on a blind scene may choose a default.
 
     python -m benchmarks.baseline_tuning --round round1 [--stage dpt|rte] [--configs a,b]
@@ -113,6 +115,53 @@ def summary(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def describe(config: list[str] | dict) -> str:
+    """A configuration as the table's ``overrides`` column."""
+    if isinstance(config, dict):
+        return (f"{' '.join(config.get('overrides', []))} then stage=dpt for "
+                f"{float(config['then_dpt']):.0%} of the time "
+                f"{' '.join(config.get('dpt_overrides', []))}"
+                ).strip()
+    return " ".join(config)
+
+
+def run_config(args, scene: str, ckpt: Path, budget: float,
+               config: list[str] | dict) -> dict:
+    """Train one configuration for ``budget`` training seconds from the EA checkpoint
+    ``ckpt``: the measured columns of its row. A configuration is a list of overrides of
+    ``--stage``, or (stage 2's hybrid) a mapping ``{overrides: [...], then_dpt: F,
+    dpt_overrides: [...]}``: stage 2 for the share ``1 - F`` of the budget, then the
+    path-tracing baseline for the share ``F`` from stage 2's exported grids (``init=grids``);
+    its row holds the end of the second run, the sum of both runs' seconds and steps, and
+    the best sigma_t over both."""
+    common = [*SCENES[scene], f"callbacks.property_metrics.every_s={args.every_s}"]
+    if not isinstance(config, dict):
+        run, _ = train(args.stage, args.out, args.preset, [
+            *common, f"init.ea_ckpt={ckpt}", f"budget_s={budget}",
+            f"budget.{args.stage}.steps={MANY_STEPS}", *config])
+        return run_row(run)
+    if args.stage != "rte":
+        raise SystemExit(f"{describe(config)}: a hybrid configuration continues stage 2 "
+                         "(--stage rte).")
+    if not 0 < float(config["then_dpt"]) < 1:
+        raise SystemExit(f"then_dpt={config['then_dpt']}: the baseline's share of the budget, "
+                         "in (0, 1).")
+    tail = float(config["then_dpt"]) * budget
+    first, _ = train("rte", args.out, args.preset, [
+        *common, f"init.ea_ckpt={ckpt}", f"budget_s={budget - tail}",
+        f"budget.rte.steps={MANY_STEPS}", *config.get("overrides", [])])
+    second, _ = train("dpt", args.out, args.preset, [
+        *common, "init=grids", f"init.grids={first / 'medium_grids.npz'}", f"budget_s={tail}",
+        f"budget.dpt.steps={MANY_STEPS}", *config.get("dpt_overrides", [])])
+    head, end = run_row(first), run_row(second)
+    sigma_t = curve(first, "val/mse_sigma_t_x100") + [
+        (float(head["seconds"]) + s, v) for s, v in curve(second, "val/mse_sigma_t_x100")]
+    best = min(sigma_t, key=lambda p: p[1])
+    return {**end, "seconds": f"{float(head['seconds']) + float(end['seconds']):.1f}",
+            "steps": f"{head['steps']}+{end['steps']}", "start_sigma_t": head["start_sigma_t"],
+            "best_sigma_t": f"{best[1]:.4f}", "best_at_s": f"{best[0]:.1f}"}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--round", default="round1", help="a round of the configs file")
@@ -154,16 +203,12 @@ def main() -> None:
             if key in done:
                 print(f"{name} on {scene}: in the table already", flush=True)
                 continue
-            run, _ = train(args.stage, args.out, args.preset, [
-                *SCENES[scene], f"init.ea_ckpt={ckpt}", f"budget_s={budget}",
-                f"budget.{args.stage}.steps={MANY_STEPS}",
-                f"callbacks.property_metrics.every_s={args.every_s}", *overrides])
             row = {"round": args.round, "config": name, "stage": args.stage, "scene": scene,
-                   "preset": args.preset, "budget_s": budget,
-                   "overrides": " ".join(overrides), **run_row(run)}
+                   "preset": args.preset, "budget_s": budget, "overrides": describe(overrides),
+                   **run_config(args, scene, ckpt, budget, overrides)}
             append_row(table, row)
             print(f"{name} on {scene}: sigma_t {row['mse_sigma_t_x100']} sigma_s "
-                  f"{row['mse_sigma_s_x100']} ({row['steps']} steps) {run}", flush=True)
+                  f"{row['mse_sigma_s_x100']} ({row['steps']} steps)", flush=True)
     print(summary(read_table(table)))
 
 
