@@ -12,7 +12,6 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nrt.data.exr import write_exr
 from nrt.data.render import ensure_dataset
 from nrt.stages import radiative_transfer
 from tests.conftest import (
@@ -26,6 +25,7 @@ from tests.conftest import (
     values,
 )
 from tests.finite_training import fit
+from tests.stages import stage2_cases as cases
 
 pytestmark = pytest.mark.e2e
 
@@ -210,49 +210,12 @@ def build(tmp_path, *overrides: str, stage: str = "rte", paper: bool = True):
     return model, dm
 
 
-def bright_sun_sky(path) -> str:
-    """A 32 x 64 sky of radiance 0.5 with a sun 1e4 times brighter (3 x 3 texels)."""
-    sky = np.full((32, 64, 3), 0.5, np.float32)
-    sky[8:11, 20:23] = 5e3
-    write_exr(path, sky)
-    return str(path)
-
-
-HARD_CASES = {
-    "dense": ["scene.medium.max_extinction=50"],
-    "forward_g": ["scene.medium.g=0.95"],
-    "backward_g": ["scene.medium.g=-0.95"],
-    "near_empty": ["scene.medium.max_extinction=1e-4"],
-    "grazing_cameras": ["scene.cameras.radius=1.75", "scene.cameras.fov_x_deg=90"],
-    "point_light": ["scene.effects.emitters=[{position:[0.0,0.0,0.0],"
-                    "intensity:[1000.0,1000.0,1000.0]}]"],
-}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("case", [*HARD_CASES, "sun_1e4"])
+@pytest.mark.parametrize("case", [*cases.HARD_CASES, "sun_1e4"])
 def test_hard_cases_train_without_nonfinite_values(tmp_path, case):
-    overrides = hard_case_overrides(case, tmp_path)
+    overrides = cases.hard_case_overrides(case, tmp_path)
     model, dm = build(tmp_path, f"scene.name={case}", *overrides)
-    trains_finite(model, dm, 100)
-
-
-def hard_case_overrides(case: str, tmp_path) -> list[str]:
-    """A hard case's scene overrides (``sun_1e4``: a sun 1e4 times its sky, as an EXR)."""
-    return HARD_CASES.get(case) or [
-        "scene.environments.sky_seeds=[]",
-        f"+scene.environments.files.sun={bright_sun_sky(tmp_path / 'sun.exr')}"]
-
-
-def trains_finite(model, dm, steps: int) -> None:
-    """``steps`` steps run, and the medium's grids and the predicted pixels stay finite."""
-    trainer = fit(model, dm, steps)
-    assert trainer.global_step == steps
-    grids = model.medium.grids(8)
-    assert all(torch.isfinite(v).all() for v in grids.values())
-    batch = next(iter(dm.val_dataloader()))
-    pred = model.predict_pixels(batch["origins"], batch["dirs"], batch["background"])
-    assert all(torch.isfinite(p).all() for p in pred.values())
+    cases.trains_finite(model, dm, 100)
 
 
 @pytest.mark.parametrize("stage", ["rte", "forward"])
@@ -288,42 +251,12 @@ def test_stage2_and_forward_mode_run_on_a_grey_scene(tmp_path, stage):
 
 
 # ------------------------------------------------------- only what the scene calls for
-def count_calls(monkeypatch, module, name: str) -> list:
-    calls: list = []
-    original = getattr(module, name)
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(module, name, spy)
-    return calls
-
-
-def spy_objectives(monkeypatch, model) -> list[tuple[int, str]]:
-    """(step, name) of every loss the model's objectives compute from now on."""
-    called: list[tuple[int, str]] = []
-    for name, unit in model.objectives.items():
-        def spy(batch, context, name=name, original=unit.loss):
-            called.append((model.global_step, name))
-            return original(batch, context)
-        monkeypatch.setattr(unit, "loss", spy)
-    return called
-
-
-DIRECT_LIGHT_CASES = [  # (model.sun.threshold, scene.effects.emitters, direct light built)
-    ("null", "[]", False),
-    ("10.0", "[]", True),
-    ("null", "[{position:[0.0,2.0,0.0],intensity:[5.0,5.0,5.0]}]", True),
-]
-
-
-@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", DIRECT_LIGHT_CASES)
+@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", cases.DIRECT_LIGHT_CASES)
 def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
         tmp_path, monkeypatch, sun_threshold, emitters, expect_direct):
     model, dm = build(tmp_path, f"model.sun.threshold={sun_threshold}",
                       f"scene.effects.emitters={emitters}")
-    calls = count_calls(monkeypatch, radiative_transfer, "direct_inscatter")
+    calls = cases.count_calls(monkeypatch, radiative_transfer, "direct_inscatter")
     fit(model, dm, 2)
     assert bool(calls) == expect_direct
 
@@ -337,7 +270,7 @@ def test_only_weighted_objectives_are_built(tmp_path, monkeypatch, weights, buil
     """A zero weight removes an objective entirely (a ramp starting at 0 included)."""
     model, dm = build(tmp_path, "model.sun.threshold=null",
                       *(f"losses.weights.{k}={v}".replace(" ", "") for k, v in weights.items()))
-    called = spy_objectives(monkeypatch, model)
+    called = cases.spy_objectives(monkeypatch, model)
     fit(model, dm, 1)
     assert {name for _, name in called} == built
 

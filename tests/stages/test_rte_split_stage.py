@@ -20,15 +20,8 @@ from nrt.modules.fields.voxel_medium import VoxelMedium
 from nrt.stages import rte as rte_split
 from nrt.stages.rte import RTEStage
 from tests.conftest import last_value, only_run_dir, read_csv_metrics, run_train, values
-from tests.stages.test_rte_paper_stage import (
-    DIRECT_LIGHT_CASES,
-    HARD_CASES,
-    count_calls,
-    fit,
-    hard_case_overrides,
-    spy_objectives,
-    trains_finite,
-)
+from tests.finite_training import fit
+from tests.stages import stage2_cases as cases
 
 pytestmark = pytest.mark.e2e
 
@@ -123,11 +116,11 @@ def build(tmp_path, *overrides: str, stage: str = "rte"):
     return build_any(tmp_path, *SMALL, *overrides, stage=stage, paper=False)
 
 
-@pytest.mark.parametrize("case", [*HARD_CASES, "sun_1e4"])
+@pytest.mark.parametrize("case", [*cases.HARD_CASES, "sun_1e4"])
 def test_hard_cases_train_without_nonfinite_values(tmp_path, case):
     model, dm = build(tmp_path, f"scene.name={case}", "budget.rte.light_warmup=0.1",
-                      *hard_case_overrides(case, tmp_path))
-    trains_finite(model, dm, 100)
+                      *cases.hard_case_overrides(case, tmp_path))
+    cases.trains_finite(model, dm, 100)
 
 
 @pytest.mark.parametrize("stage", ["rte", "forward"])
@@ -146,12 +139,12 @@ def test_grey_isotropic_scene_builds_one_band_and_one_extinction_channel(tmp_pat
         torch.testing.assert_close(t, t[..., :1].expand_as(t))
 
 
-@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", DIRECT_LIGHT_CASES)
+@pytest.mark.parametrize("sun_threshold,emitters,expect_direct", cases.DIRECT_LIGHT_CASES)
 def test_direct_light_only_when_the_scene_has_a_sun_or_emitters(
         tmp_path, monkeypatch, sun_threshold, emitters, expect_direct):
     model, dm = build(tmp_path, f"model.sun.threshold={sun_threshold}",
                       f"scene.effects.emitters={emitters}", "budget.rte.light_warmup=0.01")
-    calls = count_calls(monkeypatch, rte_split, "direct_inscatter")
+    calls = cases.count_calls(monkeypatch, rte_split, "direct_inscatter")
     fit(model, dm, 2)
     assert bool(calls) == expect_direct
 
@@ -162,7 +155,7 @@ def test_medium_waits_for_the_light_field_and_grows_coarse_to_fine(tmp_path, mon
     change (:mod:`nrt.modules.fields.coarse_to_fine`)."""
     model, dm = build(tmp_path, "budget.rte.light_warmup=0.5",
                       "budget.rte.medium_resolutions=[2,4]", "budget.rte.medium_upsample_at=[0.5]")
-    called = spy_objectives(monkeypatch, model)
+    called = cases.spy_objectives(monkeypatch, model)
     fit(model, dm, 10)
     photo_steps = [s for s, name in called if name == "photo"]
     assert photo_steps and min(photo_steps) == 5
@@ -214,7 +207,7 @@ def test_the_extinction_prior_is_the_mean_extinction_and_lowers_it(tmp_path, mon
     exp(-0.2) = 0.82, far below 0.95."""
     model, dm = build(tmp_path, "losses.weights.extinction_prior=10.0",
                       "budget.rte.light_warmup=0.01")
-    called = spy_objectives(monkeypatch, model)
+    called = cases.spy_objectives(monkeypatch, model)
     fit(model, dm, 10)
     assert {name for _, name in called} == {"photo", "transport", "extinction_prior"}
     voxels = model.medium.voxels()
@@ -233,7 +226,7 @@ def test_the_total_variation_prior_is_built_by_its_ablation_and_flattens_the_med
     def trained_tv(*overrides):
         torch.manual_seed(0)
         model, dm = build(tmp_path, "budget.rte.light_warmup=0.01", *overrides)
-        called = spy_objectives(monkeypatch, model)
+        called = cases.spy_objectives(monkeypatch, model)
         fit(model, dm, 10)
         voxels = model.medium.voxels()
         assert torch.isfinite(voxels.stacked).all()
@@ -260,7 +253,7 @@ def test_coupling_options_carry_photo_gradients_through_the_scattered_light(tmp_
     model, dm = build(tmp_path, "model.coupling.adjoint=true",
                       "model.coupling.unrolled_directions=1", "budget.rte.light_warmup=0.2")
     assert model.adjoint is not None and "adjoint.source" in model.state_dict()
-    trains_finite(model, dm, 10)
+    cases.trains_finite(model, dm, 10)
     assert model.adjoint.source.abs().max() > 0
     assert model.adjoint.grid.coefficients.detach().abs().max() > 0
     assert "adjoint.grid.coefficients" in model.state_dict()
@@ -375,7 +368,7 @@ def test_the_photo_objective_renders_each_twin_with_its_first_ray(tmp_path, monk
         return original(medium, origins, dirs, background, *args)
 
     monkeypatch.setattr(photo, "render_view_rays", spy)
-    trains_finite(model, dm, 3)
+    cases.trains_finite(model, dm, 3)
     assert renders and len(renders) % 2 == 0
     firsts, twins = renders[0::2], renders[1::2]
     steps = len(renders) // (2 * skies)
@@ -403,7 +396,7 @@ def test_a_sky_whose_share_of_the_batch_holds_no_twin_renders_none(tmp_path, mon
         return original(medium, origins, *args)
 
     monkeypatch.setattr(photo, "render_view_rays", spy)
-    trains_finite(model, dm, 3)
+    cases.trains_finite(model, dm, 3)
     assert sizes and len(sizes) % 3 == 0, sizes
     assert min(sizes) > 0, sizes
     assert sum(sizes) == 65 * (len(sizes) // 3), sizes
