@@ -83,6 +83,9 @@ class SplitSamples:
     """Sky directions per cache cell of a refresh."""
     uncollided_blend: float = MISSING
     """Weight of a refresh in the cache's moving average, in (0, 1]."""
+    uncollided_shared: bool = MISSING
+    """True: the skies of one medium share the refresh's shadow rays (multiple importance
+    sampling over their samplers); false: each sky draws its own."""
 
 
 @dataclass

@@ -16,12 +16,13 @@ proposal densities are not (samples are fixed proposals, which keeps the gradien
 unbiased).
 
 :func:`uncollided_sh` projects ``L_u`` (sky and known lights) onto spherical harmonics
-(:mod:`nrt.physics.sh`), the form in which the scattered-light field uses it.
+(:mod:`nrt.physics.sh`), the form in which the scattered-light field uses it;
+:func:`uncollided_sh_skies` does it for several skies with one set of shadow rays.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from torch.profiler import record_function
@@ -36,12 +37,20 @@ SigmaT = Callable[[torch.Tensor], torch.Tensor]
 """Extinction at points (..., 3) -> (..., C), C = 3 or 1."""
 
 
+def sky_transmittance(x: torch.Tensor, d: torch.Tensor, sigma_t: SigmaT, bbox: torch.Tensor,
+                      n_steps: int, jitter: bool = True) -> torch.Tensor:
+    """``T(x, d)`` (..., C): the transmittance from ``x`` to the box along look directions
+    ``d`` (``n_steps`` strata, jittered)."""
+    _, t_exit, _ = ray_box_intersect(x, d, bbox)
+    tau = optical_depth(sigma_t, x, d, torch.zeros_like(t_exit), t_exit, n_steps, jitter)
+    return torch.exp(-tau)
+
+
 def shadowed_sky(x: torch.Tensor, d: torch.Tensor, sigma_t: SigmaT, bbox: torch.Tensor,
                  envmap: EnvironmentMap, n_steps: int, jitter: bool = True) -> torch.Tensor:
     """``T(x, d) E(d)`` (..., 3): the sky seen from ``x`` along look directions ``d``."""
-    _, t_exit, _ = ray_box_intersect(x, d, bbox)
-    tau = optical_depth(sigma_t, x, d, torch.zeros_like(t_exit), t_exit, n_steps, jitter)
-    return torch.exp(-tau) * envmap.lookup(d).to(x.dtype)
+    return sky_transmittance(x, d, sigma_t, bbox, n_steps, jitter) * \
+        envmap.lookup(d).to(x.dtype)
 
 
 def sky_inscatter(x: torch.Tensor, w: torch.Tensor, g: torch.Tensor | None, sigma_t: SigmaT,
@@ -84,6 +93,39 @@ def uncollided_sh(x: torch.Tensor, sigma_t: SigmaT, bbox: torch.Tensor, envmap: 
     sky = shadowed_sky(x.unsqueeze(1).expand_as(d), d, sigma_t, bbox, envmap, n_steps)
     weighted = sky / sampler.pdf(d).clamp_min(1e-20).unsqueeze(-1)
     coef = torch.einsum("nkc,nkj->ncj", weighted, sh_basis(-d, degree)) / n_dirs
+    return with_known_lights(coef, x, sigma_t, bbox, lights, degree, n_steps)
+
+
+@torch.no_grad()
+def uncollided_sh_skies(x: torch.Tensor, sigma_t: SigmaT, bbox: torch.Tensor,
+                        envmaps: Sequence[EnvironmentMap],
+                        samplers: Sequence[EnvironmentDirectionSampler],
+                        lights: Sequence[DirectLights | None], degree: int, n_dirs: int,
+                        n_steps: int) -> list[torch.Tensor]:
+    """:func:`uncollided_sh` of K skies in one medium from one set of shadow rays: the
+    ``n_dirs`` directions of a point are drawn from the K samplers in equal shares (the
+    first ``n_dirs % K`` one more) and serve every sky, each weighted by the balance
+    heuristic ``E_k(d) / sum_m n_m pdf_m(d)`` (multi-sample MIS: unbiased for each sky).
+    The shadow rays of one sky light all K; each sky's estimate has ``n_dirs`` samples, about
+    ``n_dirs / K`` of them drawn like itself. With K = 1 it is :func:`uncollided_sh`."""
+    k = len(samplers)
+    counts = [n_dirs // k + (i < n_dirs % k) for i in range(k)]
+    n = x.shape[0]
+    d = torch.cat([s.sample(n * c).to(x).reshape(n, c, 3)
+                   for s, c in zip(samplers, counts, strict=True) if c], 1)
+    mixture = sum(c * s.pdf(d) for s, c in zip(samplers, counts, strict=True))
+    weight = sky_transmittance(x.unsqueeze(1).expand_as(d), d, sigma_t, bbox, n_steps) / \
+        mixture.clamp_min(1e-20).unsqueeze(-1)
+    basis = sh_basis(-d, degree)
+    return [with_known_lights(torch.einsum("nkc,nkj->ncj", weight * e.lookup(d).to(x.dtype),
+                                           basis), x, sigma_t, bbox, known, degree, n_steps)
+            for e, known in zip(envmaps, lights, strict=True)]
+
+
+def with_known_lights(coef: torch.Tensor, x: torch.Tensor, sigma_t: SigmaT, bbox: torch.Tensor,
+                      lights: DirectLights | None, degree: int, n_steps: int) -> torch.Tensor:
+    """The sky's SH coefficients ``coef`` (N, 3, (degree + 1)^2) plus the known lights'
+    shadowed arrivals at ``x``, projected exactly."""
     if lights is not None and len(lights):
         for toward, power in direct_arrivals(x, lights, sigma_t, bbox, n_steps, jitter=True):
             coef = coef + power.unsqueeze(-1) * sh_basis(-toward, degree).unsqueeze(-2)

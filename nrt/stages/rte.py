@@ -57,7 +57,7 @@ from nrt.losses.objective import Objective, build_objectives, objective_class
 from nrt.losses.transport import unrolled_inscatter
 from nrt.modules.fields.coarse_to_fine import decaying_lr, ramp_in
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium, build
-from nrt.modules.fields.voxel_medium import detached, extinction
+from nrt.modules.fields.voxel_medium import extinction
 from nrt.modules.renderers.exit import exit_radiance
 from nrt.modules.renderers.volume import render_view_rays, transmitted_background
 from nrt.physics.direct_light import direct_inscatter
@@ -237,9 +237,7 @@ class RTEStage(RadiativeTransferStage):
         start = time.perf_counter()
         with record_function("nrt/uncollided"):  # a profiler scope (benchmarks.profile_step)
             if self.uncollided.due(self.global_step):
-                for medium, light in scenes:
-                    self.uncollided.refresh(detached(medium), light,
-                                            self.sky_lights.illumination_of(light))
+                self.uncollided.refresh_all(scenes, self.sky_lights.illumination_of)
                 self.uncollided.fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
 

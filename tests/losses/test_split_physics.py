@@ -36,7 +36,7 @@ from nrt.physics.direct_light import DirectLights
 from nrt.physics.envmap import EnvironmentDirectionSampler, EnvironmentMap
 from nrt.physics.phase import hg_phase, isotropic_phase, sample_uniform_sphere
 from nrt.physics.sh import num_coefficients, phase_band_factors, sh_basis
-from nrt.physics.sky_light import sky_inscatter, uncollided_sh
+from nrt.physics.sky_light import sky_inscatter, uncollided_sh, uncollided_sh_skies
 from nrt.physics.volume import cell_centres, ray_box_intersect
 from tests.mc_stats import compare, footprint_average
 from tests.mitsuba.test_mitsuba_physics import SEEDS, check, make_spec, render_pair, smooth_sky
@@ -182,6 +182,39 @@ def test_uncollided_projection_matches_quadrature():
     _, t_sun, _ = ray_box_intersect(x, sun, BOX)
     exact = (torch.exp(-sigma_t * t_sun) * irr)[..., None] * sh_basis(-sun, 2)[:, None, :]
     torch.testing.assert_close(only_sun, exact, rtol=1e-6, atol=1e-9)
+
+
+def test_skies_sharing_shadow_rays_each_match_their_quadrature():
+    """:func:`uncollided_sh_skies`: two skies (the bright-spot sky and a second spot elsewhere
+    over a dimmer smooth sky) projected from one set of 16 shadow rays per point, half drawn
+    like each sky. Each sky's coefficients against its own quadrature projection (|z| < 5,
+    300 independent estimates: the multi-sample MIS weights keep each unbiased). With one
+    sky, the same draws as :func:`uncollided_sh` give the same coefficients (float64:
+    only the division's order differs, 1e-12)."""
+    torch.manual_seed(2)
+    first = bright_spot_sky()
+    dim = torch.from_numpy(smooth_sky(16, 32)).double() * 0.3
+    dim[11, 25] *= 400.0
+    second = EnvironmentMap(dim)
+    samplers = [EnvironmentDirectionSampler(first), EnvironmentDirectionSampler(second)]
+    sigma_t = torch.tensor([0.4, 1.0, 2.0], dtype=torch.float64)
+    x = torch.tensor([[0.2, -0.3, 0.5]], dtype=torch.float64)
+    medium = lambda p: sigma_t.expand(*p.shape[:-1], 3)  # noqa: E731
+    reps = 300
+    est = uncollided_sh_skies(x.expand(reps, 3), medium, BOX, [first, second], samplers,
+                              [None, None], 2, 16, 8)
+    _, t_exit, _ = ray_box_intersect(x.expand_as(QUAD), QUAD, BOX)
+    for env, coef in zip((first, second), est, strict=True):
+        rad = torch.exp(-sigma_t * t_exit[:, None]) * env.lookup(QUAD)
+        ref = torch.einsum("nc,nk->ck", rad, sh_basis(-QUAD, 2)) * (4 * math.pi / len(QUAD))
+        z = (coef.mean(0) - ref) / (coef.std(0) / math.sqrt(reps)).clamp_min(1e-12)
+        assert z.abs().max() < 5, z
+    torch.manual_seed(3)
+    (alone,) = uncollided_sh_skies(x.expand(4, 3), medium, BOX, [first], samplers[:1], [None],
+                                   2, 16, 8)
+    torch.manual_seed(3)
+    own = uncollided_sh(x.expand(4, 3), medium, BOX, first, samplers[0], None, 2, 16, 8)
+    torch.testing.assert_close(alone, own, rtol=1e-12, atol=1e-14)
 
 
 def test_transport_target_closed_form_and_loss():

@@ -92,6 +92,44 @@ def test_the_uncollided_cache_refreshes_on_its_schedule_and_blends_after_the_fir
     assert [step for step in range(25) if cache.due(step)] == [0, 10, 20]
 
 
+@pytest.mark.parametrize("shared", [False, True])
+def test_refresh_all_shares_shadow_rays_only_among_the_skies_of_one_medium(monkeypatch, shared):
+    """Two skies' lights in one medium and a third light in another: one by one, three
+    projections of one sky each; with ``uncollided_shared``, one projection of both skies
+    for the first medium and one of one sky for the other, each light given its own
+    sky's coefficients."""
+    calls: list[int] = []
+
+    def one(points, sigma_t, bbox, envmap, sampler, lights, *args):
+        calls.append(1)
+        return torch.full((len(points), 3, 4), float(envmap))
+
+    def several(points, sigma_t, bbox, envmaps, *args):
+        calls.append(len(envmaps))
+        return [torch.full((len(points), 3, 4), float(e)) for e in envmaps]
+
+    monkeypatch.setattr(uncollided_module, "uncollided_sh", one)
+    monkeypatch.setattr(uncollided_module, "uncollided_sh_skies", several)
+    monkeypatch.setattr(uncollided_module, "extinction", lambda medium: None)
+    monkeypatch.setattr(uncollided_module, "detached", lambda medium: medium)
+    values: dict[int, float] = {}
+
+    class Recording(Light):
+        def set_uncollided(self, coefficients, blend):
+            values[id(self)] = float(coefficients.unique())
+
+    lights = [Recording() for _ in range(3)]
+    skies = {id(light): Illumination(k, k + 1, None, None, None, 1.0)
+             for k, light in enumerate(lights)}
+    cache = UncollidedCache({"uncollided_every": 10, "uncollided_directions": 4,
+                             "shadow_steps": 2, "uncollided_shared": shared})
+    first, second = object(), object()
+    cache.refresh_all([(first, lights[0]), (first, lights[1]), (second, lights[2])],
+                      lambda light: skies[id(light)])
+    assert sorted(calls) == ([1, 2] if shared else [1, 1, 1])
+    assert [values[id(light)] for light in lights] == [1.0, 2.0, 3.0]
+
+
 def test_coupling_settings_default_and_refuse_unknown_keys():
     assert coupling_settings(None) == COUPLING
     assert coupling_settings({"adjoint": True})["adjoint"] is True
