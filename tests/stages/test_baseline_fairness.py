@@ -275,15 +275,22 @@ def test_tuning_refuses_a_blind_scene(tmp_path):
 def test_every_tuning_configuration_composes(stage):
     """Each configuration of each round of the stage's tuning file is a list of overrides
     that composes with the stage at the cpu preset, passes the config checks and sets
-    each overridden key to its value."""
+    each overridden key to its value; a hybrid's two parts (stage 2's overrides, then the
+    baseline's) each do so with their own stage."""
     from benchmarks.baseline_tuning import CONFIGS
 
     rounds = yaml.safe_load(CONFIGS[stage].read_text())
     assert rounds and all(isinstance(configs, dict) and configs for configs in rounds.values())
-    distinct = {tuple(overrides): name for configs in rounds.values()
-                for name, overrides in configs.items()}
-    for overrides, name in distinct.items():
-        cfg = compose_config("train", [f"stage={stage}", "preset=cpu", *overrides])
+    distinct: dict[tuple, str] = {}
+    for configs in rounds.values():
+        for name, config in configs.items():
+            if isinstance(config, dict):  # a hybrid: stage 2, then the baseline
+                distinct[("rte", *config.get("overrides", []))] = name
+                distinct[("dpt", *config.get("dpt_overrides", []))] = name
+            else:
+                distinct[(stage, *config)] = name
+    for (part, *overrides), name in distinct.items():
+        cfg = compose_config("train", [f"stage={part}", "preset=cpu", *overrides])
         check_budget(cfg)
         check_objectives(cfg)
         check_arguments(cfg)
