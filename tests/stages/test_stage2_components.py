@@ -130,6 +130,23 @@ def test_refresh_all_shares_shadow_rays_only_among_the_skies_of_one_medium(monke
     assert [values[id(light)] for light in lights] == [1.0, 2.0, 3.0]
 
 
+def test_a_shared_refresh_refuses_lights_with_different_cache_points(monkeypatch):
+    """Shadow rays are shared per cache point: lights of one medium whose cache points
+    differ cannot share them, and nothing is projected."""
+    monkeypatch.setattr(uncollided_module, "extinction", lambda medium: None)
+
+    class Other(Light):
+        def cache_points(self):
+            return torch.ones(5, 3)
+
+    cache = UncollidedCache({"uncollided_every": 10, "uncollided_directions": 4,
+                             "shadow_steps": 2, "uncollided_shared": True})
+    lights = [Light(), Other()]
+    with pytest.raises(ValueError, match="same cache points"):
+        cache.refresh_shared(None, lights, [sky(0), sky(1)])
+    assert all(light.blends == [] for light in lights)
+
+
 def test_coupling_settings_default_and_refuse_unknown_keys():
     assert coupling_settings(None) == COUPLING
     assert coupling_settings({"adjoint": True})["adjoint"] is True
