@@ -134,6 +134,15 @@ def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None,
     return (run / LAST_CKPT).resolve()
 
 
+def commit_of(code: Path) -> str:
+    """``code``'s git commit, ``+ changes`` when its work tree differs from it."""
+    def git(*argv: str) -> str:
+        return subprocess.run(["git", "-C", str(code), *argv], capture_output=True,
+                              text=True).stdout.strip()
+    head = git("rev-parse", "--short", "HEAD") or str(code)
+    return head + (" + changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
 def metric_rows(run: Path) -> list[dict]:
     """The rows of a run's CSV log (``csv/metrics.csv``)."""
     with open(run / "csv" / "metrics.csv") as f:

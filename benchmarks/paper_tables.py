@@ -7,10 +7,10 @@ once, found again under ``outputs/`` by the scene's name), then stage 2 and the 
 for ``--budget-s`` training seconds each from that one checkpoint, each scored by
 ``nrt-eval``'s Mitsuba re-render under the held-back sky (``benchmarks.equal_time``); on the
 first ``ablation_scenes`` isotropic scenes, the ablations at the same time. Every run leaves
-``<data>/<set>/<scene>/<method>.{csv,json}``; a run whose JSON exists is reused, so a killed
-benchmark continues where it stopped. One progress line per run says where it is and about
-how long is left. For the first scene of each set, the media of both methods and the truth
-are kept as small 32^3 grids for the slices figure.
+``<data>/<set>/<scene>/<method>.{csv,json}`` (the JSON names the code's commit); a run whose
+JSON exists is reused, so a killed benchmark continues where it stopped. One progress line per
+run says where it is and about how long is left. For the first scene of each set, the media
+of both methods and the truth are kept as small 32^3 grids for the slices figure.
 
 ``redraw``: Table 1 (isotropic set: stage 2 and the baseline per scene, mean ± std over the
 scenes, seconds), Table 2 (anisotropic set, g scored weighted by the true sigma_s), Table 3
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from benchmarks.common import add_budget_arguments, ea_checkpoint, output_dir
+from benchmarks.common import add_budget_arguments, commit_of, ea_checkpoint, output_dir
 from benchmarks.equal_time import PROPERTIES, read_record, run_method, summary_line
 from benchmarks.quickstart_slices import small
 from nrt.data.dataset import GROUND_TRUTH_FILE
@@ -115,6 +115,7 @@ def run_all(args) -> None:
     runs = planned_runs(sets, n, args.ablation_scenes, ablations, methods)
     firsts = {(s, sets["sets"][s]["scenes"][0]["seed"]) for s in n if n[s] > 0}
     spent: list[float] = []
+    code = commit_of(ROOT)
     for i, (set_name, scene, method, stage_overrides) in enumerate(runs, 1):
         name = scene_name(set_name, scene["seed"])
         path = args.data / set_name / name / method
@@ -130,7 +131,8 @@ def run_all(args) -> None:
         start = time.perf_counter()
         record = run_method(path, stage_overrides, overrides, ckpt, args.budget_s, args.every_s,
                             args.preset, args.out, {"set": set_name, "scene": name,
-                                                    "seed": scene["seed"], "method": method})
+                                                    "seed": scene["seed"], "method": method,
+                                                    "code": code})
         spent.append(time.perf_counter() - start)
         if (set_name, scene["seed"]) in firsts and method in sets["methods"]:
             keep_slices(Path(record["run"]), path.parent, method)
@@ -185,6 +187,9 @@ def write_table(scenes: dict[str, dict[str, dict]], methods: list[str], title: s
         lines.append(f"| {NOT_COMPARABLE} | {LABELS[m]} | " +
                      " | ".join(str(values.get(k.removeprefix("mse_").removesuffix("_x100"), "-"))
                                 for k in COLUMNS) + " | | |")
+    codes = sorted({r[m].get("code", "not recorded") for r in scenes.values() for m in methods
+                    if m in r})
+    lines += ["", f"Code: {', '.join(codes)}."]
     text = "\n".join(lines) + "\n"
     md.write_text(text)
     return text

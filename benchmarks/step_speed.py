@@ -29,6 +29,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from benchmarks.common import commit_of
+
 HERE = Path(__file__).resolve().parents[1]
 
 
@@ -47,15 +49,6 @@ def one_run(stage: str, preset: str, setting: list[str], steps: int, warmup: int
         if done.returncode != 0:
             sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
         return json.loads(out.read_text())
-
-
-def commit_of(code: Path) -> str:
-    """``code``'s git commit, ``+ changes`` when its work tree differs from it."""
-    def git(*argv: str) -> str:
-        return subprocess.run(["git", "-C", str(code), *argv], capture_output=True,
-                              text=True).stdout.strip()
-    head = git("rev-parse", "--short", "HEAD") or str(code)
-    return head + (" + changes" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
 def summary(rows: list[dict], stages: list[str], names: tuple[str, str]) -> str:

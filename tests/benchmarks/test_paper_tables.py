@@ -75,7 +75,8 @@ def test_every_planned_run_composes():
         assert cfg.scene.effects.phase == phase
 
 
-def _record(data: Path, set_name: str, scene: str, method: str, sigma_t: float) -> None:
+def _record(data: Path, set_name: str, scene: str, method: str, sigma_t: float,
+            code: str = "abc1234") -> None:
     folder = data / set_name / scene
     folder.mkdir(parents=True, exist_ok=True)
     (folder / f"{method}.csv").write_text("wall_s,sigma_a,sigma_s,sigma_t,g\n0,1,2,9,\n"
@@ -86,18 +87,18 @@ def _record(data: Path, set_name: str, scene: str, method: str, sigma_t: float) 
     (folder / f"{method}.json").write_text(json.dumps({
         "set": set_name, "scene": scene, "seed": 1, "method": method, "budget_s": 10.0,
         "preset": "tiny", "seconds": 10.0, "steps": 50, "curve_points": 2, "learns_g": False,
-        "metrics": metrics}))
+        "code": code, "metrics": metrics}))
 
 
 def test_tables_are_redrawn_from_the_recorded_files(tmp_path):
     """Table 1 has a row per scene and method and the mean ± std over scenes; the paper's
     numbers stand beside it marked not comparable; Table 3 holds only the ablated scenes,
-    stage 2's row beside each ablation."""
+    stage 2's row beside each ablation; each table names the commits its rows ran on."""
     data = tmp_path / "data"
     for scene, (rte, dpt) in {"paper_iso_1": (2.0, 6.0), "paper_iso_2": (4.0, 8.0)}.items():
         _record(data, "iso", scene, "rte", rte)
         _record(data, "iso", scene, "dpt", dpt)
-    _record(data, "iso", "paper_iso_1", "single_stage", 5.0)
+    _record(data, "iso", "paper_iso_1", "single_stage", 5.0, code="def5678 + changes")
     assert set(read_results(data)["iso"]) == {"paper_iso_1", "paper_iso_2"}
     redraw(data, tmp_path / "figures", SETS)
     table1 = (data / "table1.md").read_text()
@@ -108,6 +109,8 @@ def test_tables_are_redrawn_from_the_recorded_files(tmp_path):
     assert "not comparable" in table1 and "| 0.87 | 4.06 | 6.88 |" in table1
     table3 = (data / "table3.md").read_text()
     assert "paper_iso_2" not in table3 and "| paper_iso_1 | single stage" in table3
+    assert table1.endswith("\nCode: abc1234.\n")  # every row's commit, once
+    assert table3.endswith("\nCode: abc1234, def5678 + changes.\n")
     rows = (data / "table1.csv").read_text().splitlines()
     assert len(rows) == 1 + 4 and rows[0].startswith("scene,method,mse_sigma_a_x100")
     assert not (data / "table2.md").exists()
@@ -132,6 +135,7 @@ def test_the_command_runs_two_scenes_end_to_end_at_tiny(tmp_path):
     assert set(results["iso"]["paper_iso_7001"]) == {"rte"}
     assert results["aniso"]["paper_aniso_8001"]["rte"]["learns_g"]
     assert not results["iso"]["paper_iso_7001"]["rte"]["learns_g"]  # isotropic: no g
+    assert len(results["iso"]["paper_iso_7001"]["rte"]["code"]) >= 7  # the commit it ran
     for set_name, scene in (("iso", "paper_iso_7001"), ("aniso", "paper_aniso_8001")):
         assert {p.name for p in (data / set_name / scene).glob("*.npz")} == \
             {"rte.npz", "ground_truth.npz"}
