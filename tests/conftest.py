@@ -291,21 +291,34 @@ def resume_in_place(out: Path, data_root: Path, run: Path, *overrides: str,
     return torch.load(run / "checkpoints" / "last.ckpt", weights_only=False, map_location="cpu")
 
 
+def saved_checkpoint(path: Path, module, hparams: dict | None = None, **extra) -> Path:
+    """``module``'s state with ``hparams`` (default: its own) saved as a stage's checkpoint
+    is (Lightning's keys, nrt's checkpoint format), without a Trainer; ``extra`` keys are
+    added last (and may replace the format)."""
+    import lightning
+    import torch
+
+    from nrt.stages.checkpoints import stamp
+
+    checkpoint = {"state_dict": module.state_dict(),
+                  "hyper_parameters": dict(module.hparams) if hparams is None else hparams,
+                  "pytorch-lightning_version": lightning.__version__}
+    stamp(checkpoint)
+    torch.save({**checkpoint, **extra}, path)
+    return path
+
+
 def single_scene_ea_checkpoint(path: Path) -> Path:
     """A single-scene EA checkpoint at the tiny preset (an EAModule's state and
     hyperparameters, as Lightning writes them), without training one."""
     import hydra
-    import lightning
-    import torch
 
     from nrt.stages.ea import EAModule
 
     cfg = compose_config("train", ["preset=tiny"])
     module = hydra.utils.instantiate(cfg.model, _convert_="all")
     assert isinstance(module, EAModule)
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "pytorch-lightning_version": lightning.__version__}, path)
-    return path
+    return saved_checkpoint(path, module)
 
 
 def read_csv_metrics(run_dir: Path) -> list[dict]:

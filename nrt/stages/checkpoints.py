@@ -9,11 +9,8 @@ that no code is pickled. Generative stage 2 is the split stage with a scene fami
 (:mod:`nrt.stages.family`): its config is ``hyper_parameters["scenes"]`` and its state
 (the codes, the frozen EA field) is under ``scenes.``.
 
-Format 1 differs only there: generative stage 2 was a stage class of its own, with its
-settings and state at the top (``hyper_parameters["ea_field"]``, ``codes``). Every other
-checkpoint of format 1 reads as format 2, including those written before the format was
-recorded (no key); a generative stage 2 of format 1, and any other recorded number (one
-of a newer nrt), is refused.
+A checkpoint of any other format, or one that records none (written before formats were
+recorded), is refused with its version and the fix: nrt converts no checkpoint.
 """
 
 from __future__ import annotations
@@ -29,8 +26,6 @@ CHECKPOINT_FORMAT = 2
 """The format this nrt writes and reads."""
 FORMAT_KEY = "nrt_checkpoint_format"
 """The checkpoint dict's key that records the format."""
-UNRECORDED_FORMAT = 1
-"""The format of a checkpoint that records none."""
 
 
 def stamp(checkpoint: dict) -> None:
@@ -39,26 +34,25 @@ def stamp(checkpoint: dict) -> None:
 
 
 def reads(checkpoint: dict) -> bool:
-    """Whether this nrt reads ``checkpoint``: format 2, or format 1 of any stage but
-    generative stage 2 (whose layout format 2 changed: ``ea_field`` among its
-    hyperparameters)."""
-    version = checkpoint.get(FORMAT_KEY, UNRECORDED_FORMAT)
-    if version == 1:
-        return "ea_field" not in (checkpoint.get("hyper_parameters") or {})
-    return version == CHECKPOINT_FORMAT
+    """Whether this nrt reads ``checkpoint``: it records :data:`CHECKPOINT_FORMAT`."""
+    return checkpoint.get(FORMAT_KEY) == CHECKPOINT_FORMAT
 
 
 def check_format(checkpoint: dict, source: str | Path) -> None:
     """Refuse ``checkpoint`` (read from ``source``) unless this nrt reads it (:func:`reads`)."""
-    if not reads(checkpoint):
-        version = checkpoint.get(FORMAT_KEY, UNRECORDED_FORMAT)
+    if reads(checkpoint):
+        return
+    version = checkpoint.get(FORMAT_KEY)
+    if version is None:
+        found = "records no checkpoint format: an nrt older than format 2 wrote it"
+    else:
         age = "an older" if isinstance(version, int) and version < CHECKPOINT_FORMAT \
             else "another"
-        raise NrtError(f"checkpoint '{source}' has checkpoint format {version!r}, written by "
-                       f"{age} nrt; this nrt reads format {CHECKPOINT_FORMAT} (and format 1 "
-                       "of every stage but generative stage 2) and converts none. Train the "
-                       "stage again with this nrt (nrt-train stage=<stage> scene=<scene>), or "
-                       "read the checkpoint with the nrt version that wrote it.")
+        found = f"has checkpoint format {version!r}, written by {age} nrt"
+    raise NrtError(f"checkpoint '{source}' {found}; this nrt reads format {CHECKPOINT_FORMAT} "
+                   "only and converts none. Train the stage again with this nrt (nrt-train "
+                   "stage=<stage> scene=<scene>), or read the checkpoint with the nrt version "
+                   "that wrote it.")
 
 
 def check_checkpoint_file(ckpt_path: str | Path | None, first_stage: str) -> None:

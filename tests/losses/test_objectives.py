@@ -12,7 +12,6 @@ import functools
 from pathlib import Path
 
 import hydra
-import lightning
 import numpy as np
 import pytest
 import torch
@@ -29,7 +28,7 @@ from nrt.losses.photo import PhotoObjective
 from nrt.losses.rte import RTEObjective
 from nrt.losses.transport import TransportObjective
 from nrt.losses.vre import VREObjective
-from tests.conftest import GENERATIVE_FAMILY, compose_config
+from tests.conftest import GENERATIVE_FAMILY, compose_config, saved_checkpoint
 
 pytestmark = pytest.mark.unit
 
@@ -132,9 +131,7 @@ def test_a_new_unit_is_a_class_and_a_config_entry(tmp_path: Path):
 def reload(model, hparams: dict, path: Path):
     """``model`` saved with ``hparams`` as a checkpoint and loaded back; the checkpoint
     holds plain data only (``torch.load(weights_only=True)`` reads it)."""
-    torch.save({"state_dict": model.state_dict(), "hyper_parameters": hparams,
-                "pytorch-lightning_version": lightning.__version__}, path)
-    torch.load(path, weights_only=True)
+    torch.load(saved_checkpoint(path, model, hparams), weights_only=True)
     return type(model).load_from_checkpoint(path, map_location="cpu")
 
 

@@ -6,7 +6,6 @@ an earlier one only in its medium, at the tiny preset alone)."""
 from __future__ import annotations
 
 import hydra
-import lightning
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -14,7 +13,7 @@ from omegaconf import OmegaConf
 from nrt.cli.checks import check_arguments, check_budget, check_mode
 from nrt.cli.common import CONFIG_DIR
 from nrt.stages.stage import Stage
-from tests.conftest import compose_config
+from tests.conftest import compose_config, saved_checkpoint
 
 pytestmark = pytest.mark.integration
 
@@ -99,9 +98,7 @@ def ea_checkpoint(tmp_path_factory):
             cfg = compose_config("train", ["stage=ea", f"preset={key[0]}", *extra])
             model = hydra.utils.instantiate(cfg.model, _convert_="all")
             path = tmp_path_factory.mktemp("ea") / "last.ckpt"
-            torch.save({"state_dict": model.state_dict(),
-                        "hyper_parameters": dict(model.hparams),
-                        "pytorch-lightning_version": lightning.__version__}, path)
+            saved_checkpoint(path, model)
             saved[key] = str(path)
         return saved[key]
 
