@@ -11,13 +11,22 @@ settings. Compiling costs tens of seconds in the first step (counted in the run'
 seconds); inductor's kernels are cached under ``cache_dir`` (by default
 ``<paths.output_dir>/.cache/inductor``), so a second run of the same code compiles in
 seconds.
+
+The same compiler builds nrt's own C++ extensions (:func:`load_extension`; the fused CPU
+hash grid, ``hash_grid.fused``) at first use, cached per machine under
+:func:`extensions_dir`.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import logging
 import os
 import shutil
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
 
 CXX_CANDIDATES = ("g++", "c++", "clang++")
 
@@ -39,3 +48,52 @@ def use_cache(cache_dir: str | None) -> None:
     if cache_dir and "TORCHINDUCTOR_CACHE_DIR" not in os.environ:
         os.makedirs(cache_dir, exist_ok=True)
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = os.path.abspath(cache_dir)
+
+
+EXTENSIONS_DIR_ENV = "NRT_EXTENSIONS_DIR"
+
+
+def extensions_dir() -> Path:
+    """``$NRT_EXTENSIONS_DIR``, else ``$XDG_CACHE_HOME/nrt/extensions``
+    (``~/.cache/nrt/extensions``): where :func:`load_extension` builds."""
+    if os.environ.get(EXTENSIONS_DIR_ENV):
+        return Path(os.environ[EXTENSIONS_DIR_ENV]).expanduser()
+    cache = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(cache).expanduser() / "nrt" / "extensions"
+
+
+def load_extension(name: str, sources: Sequence[Path]) -> ModuleType:
+    """The C++ extension ``name`` built from ``sources`` with ``torch.utils.cpp_extension``
+    (``-O3``, and OpenMP where ATen's thread pool is OpenMP's, so that ``at::parallel_for``
+    runs on ``torch.get_num_threads()`` threads) and imported. The build goes to
+    ``extensions_dir()/<name>/<python>_torch<version>`` and is reused until a source or a
+    flag changes. Raises RuntimeError saying why where it cannot be built."""
+    missing = missing_compiler("cpu")
+    if missing:
+        raise RuntimeError(missing)
+    import torch
+
+    quiet = logging.getLogger("torch.utils.cpp_extension")  # its import warns without CUDA
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        from torch.utils import cpp_extension
+    finally:
+        quiet.setLevel(level)
+
+    if not cpp_extension.is_ninja_available():
+        raise RuntimeError("torch builds C++ extensions with ninja, which is not installed "
+                           "(pip install ninja)")
+    flags = ["-O3"]
+    if torch.backends.openmp.is_available() and sys.platform != "win32":
+        flags.append("-fopenmp")
+    version = f"py{sys.version_info.major}{sys.version_info.minor}_torch{torch.__version__}"
+    build = extensions_dir() / name / version.replace("+", "_")
+    build.mkdir(parents=True, exist_ok=True)
+    try:
+        return cpp_extension.load(name, [str(s) for s in sources], extra_cflags=flags,
+                                  extra_ldflags=flags[1:], build_directory=str(build))
+    except Exception as e:  # a compiler error, missing headers: say which, in a line
+        lines = str(e).strip().splitlines() or [repr(e)]
+        why = next((line for line in lines if "error:" in line), lines[0])
+        raise RuntimeError(f"building {name} in {build} failed: {why.strip()[:300]}") from e

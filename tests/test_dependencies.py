@@ -17,10 +17,11 @@ tomllib = pytest.importorskip("tomllib")
 
 ROOT = Path(__file__).resolve().parents[1]
 
-NOT_IMPORTED = {"torchvision", "ruff", "pytest-xdist"}
+NOT_IMPORTED = {"torchvision", "ruff", "pytest-xdist", "ninja"}
 """Declared but never imported: lpips imports torchvision (declared beside torch so that
 pip installs a matching pair); ruff is the linter the tests' README command runs;
-pytest-xdist is the plugin behind the README's ``pytest -n 2``."""
+pytest-xdist is the plugin behind the README's ``pytest -n 2``; ninja is the build tool
+torch runs for the fused hash grid's C++ extension."""
 
 DISTRIBUTIONS = {"OpenEXR": "openexr"}
 """Modules whose distribution importlib.metadata does not map (single extension files)."""

@@ -7,6 +7,9 @@ primes ``(1, 2654435761, 805459861)``: ``(x * p0 ^ y * p1 ^ z * p2) mod T``. Fea
 trilinearly interpolated and concatenated over levels. The tables are one flat parameter
 gathered with ``index_select`` (its backward is ``index_add_``, far faster on CPU than an
 embedding's dense backward, docs/conventions.md, "Runtime").
+
+``fused=True`` computes the same on CPU with fused C++ kernels where no gradient with respect
+to the points is needed (:mod:`nrt.modules.encodings.fused_hash_grid`).
 """
 
 from __future__ import annotations
@@ -17,18 +20,22 @@ import torch
 from torch import nn
 from torch.profiler import record_function
 
+from nrt.modules.encodings import fused_hash_grid
+
 PRIMES = (1, 2654435761, 805459861)
 
 _CORNERS = torch.tensor([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)])
 
 
 class HashGrid(nn.Module):
-    """Encode points in [0, 1]^3 (..., 3) into features (..., levels * features)."""
+    """Encode points in [0, 1]^3 (..., 3) into features (..., levels * features); ``fused``:
+    with the fused CPU kernels where they apply (:func:`fused_hash_grid.fusable`)."""
 
     def __init__(self, levels: int = 16, features: int = 2, log2_table_size: int = 19,
-                 base_resolution: int = 16, growth: float = 1.5, init_scale: float = 1e-4):
+                 base_resolution: int = 16, growth: float = 1.5, init_scale: float = 1e-4,
+                 fused: bool = False):
         super().__init__()
-        self.levels, self.features = levels, features
+        self.levels, self.features, self.fused = levels, features, bool(fused)
         self.table_size = 2**log2_table_size
         self.resolutions = [int(math.floor(base_resolution * growth**lv)) for lv in range(levels)]
         self.dense = [(r + 1) ** 3 <= self.table_size for r in self.resolutions]
@@ -36,6 +43,8 @@ class HashGrid(nn.Module):
                  for r, d in zip(self.resolutions, self.dense, strict=True)]
         offsets = torch.tensor([0] + sizes).cumsum(0)
         self.register_buffer("offsets", offsets[:-1], persistent=False)
+        self.fused_levels = (self.resolutions, offsets[:-1].tolist(), self.dense,
+                             self.table_size)  # the fused kernels' arguments
         self.table = nn.Parameter(
             torch.empty(int(offsets[-1]), features).uniform_(-init_scale, init_scale))
         self.register_buffer("corners", _CORNERS.clone(), persistent=False)
@@ -59,6 +68,11 @@ class HashGrid(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         with record_function("nrt/hash_grid"):  # a profiler scope (benchmarks.profile_step)
             lead = x.shape[:-1]
+            if self.fused and fused_hash_grid.fusable(x, self.table):
+                out = fused_hash_grid.fused_encode(x.reshape(-1, 3), self.table,
+                                                   self.fused_levels)
+                if out is not None:
+                    return out.reshape(*lead, self.output_dim)
             x = x.reshape(-1, 3).clamp(0.0, 1.0)
             out = []
             for level, res in enumerate(self.resolutions):
