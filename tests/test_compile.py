@@ -46,6 +46,25 @@ def test_the_kernel_cache_goes_where_asked_unless_the_user_chose(no_cache_choice
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "cache")
 
 
+def test_commands_build_extensions_in_their_output_folder_unless_the_user_chose(
+        monkeypatch, tmp_path):
+    """nrt's commands point the C++ extensions' build folder into the output folder
+    (beside inductor's kernels); a folder the user set stays."""
+    import os
+
+    from nrt.cli.common import keep_extensions_in
+    from nrt.compile import EXTENSIONS_DIR_ENV, extensions_dir
+
+    monkeypatch.setenv(EXTENSIONS_DIR_ENV, "")
+    monkeypatch.delenv(EXTENSIONS_DIR_ENV)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "home_cache"))
+    assert extensions_dir() == tmp_path / "home_cache" / "nrt" / "extensions"
+    keep_extensions_in(str(tmp_path / "out"))
+    assert extensions_dir() == tmp_path / "out" / ".cache" / "extensions"
+    keep_extensions_in(str(tmp_path / "other"))  # the first choice (or the user's) stays
+    assert os.environ[EXTENSIONS_DIR_ENV] == str(tmp_path / "out" / ".cache" / "extensions")
+
+
 def test_without_a_compiler_the_run_trains_eagerly_and_says_so(monkeypatch, tmp_path, caplog,
                                                               tiny_dataset):
     model = EAModule(density_field={"_target_": "nrt.modules.fields.ea_field.EAField",

@@ -15,7 +15,9 @@
   one-paragraph ``nrt: error:`` message and exit status 2 instead of a traceback, and
   removes the run folder such a failed start created
   (:func:`nrt.run_dirs.discard_failed_start`); output that cannot be written (a full disk)
-  ends the same way, naming the file (:mod:`nrt.files`).
+  ends the same way, naming the file (:mod:`nrt.files`);
+- builds nrt's C++ extensions under ``<paths.output_dir>/.cache/extensions`` unless
+  ``NRT_EXTENSIONS_DIR`` is set (:func:`keep_extensions_in`).
 """
 
 from __future__ import annotations
@@ -118,6 +120,16 @@ def _fail(exc: NrtError) -> NoReturn:
     sys.exit(2)
 
 
+def keep_extensions_in(output_dir: str | None) -> None:
+    """Build nrt's C++ extensions (:func:`nrt.compile.load_extension`) under
+    ``<output_dir>/.cache/extensions``, beside inductor's kernels, unless
+    ``NRT_EXTENSIONS_DIR`` is set: a command writes nothing outside its output folder."""
+    from nrt.compile import EXTENSIONS_DIR_ENV
+
+    if output_dir:
+        os.environ.setdefault(EXTENSIONS_DIR_ENV, str(Path(output_dir) / ".cache" / "extensions"))
+
+
 def run_app(task: Callable[[DictConfig], object], config_name: str,
             command: str | None = None) -> None:
     """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml`` (the command
@@ -151,6 +163,7 @@ def run_app(task: Callable[[DictConfig], object], config_name: str,
 
                 check_schema_keys(cfg)
                 check_options(cfg)
+                keep_extensions_in(OmegaConf.select(cfg, "paths.output_dir"))
                 result = task(cfg)
             except Exception as exc:
                 mistake = config_mistake(exc, command) or \
