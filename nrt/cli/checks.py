@@ -124,10 +124,6 @@ OPTIONS: dict[str, tuple[str, Callable[[object], bool]]] = {
              _is_seed),
     "resume": ("false, true (continue the newest run of this scene and stage) or the path "
                "of a .ckpt file", lambda v: v is None or isinstance(v, bool | str)),
-    "render.progress": ("true or false (a progress bar while rendering)",
-                        lambda v: isinstance(v, bool)),
-    "render.variant": ("a Mitsuba variant name (auto, llvm_ad_rgb, cuda_ad_rgb, scalar_rgb)",
-                       lambda v: isinstance(v, str)),
     "budget_s": ("a positive number of seconds of training (or null for no time limit)",
                  lambda v: v is None or (_is_number(v) and v > 0)),
     "threads": ("a whole number >= 1 of torch threads per process, or null (the cores "
@@ -141,7 +137,7 @@ OPTIONS: dict[str, tuple[str, Callable[[object], bool]]] = {
 
 def check_options(cfg: DictConfig) -> None:
     """Refuse a scalar option of the root config (:data:`OPTIONS`: ``seed=abc``,
-    ``render.progress=maybe``) that no run can use, naming the key, before anything is
+    ``compile=maybe``) that no run can use, naming the key, before anything is
     built or loaded; options a command does not have are skipped."""
     for key in OPTIONS:
         _check_option(cfg, key)

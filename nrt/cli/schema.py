@@ -193,10 +193,36 @@ class OracleStart(Start):
     """The truth's share a of the start EA^(1 - a) truth^a, in [0, 1]; 1: the truth alone."""
 
 
+@dataclass
+class Render:
+    """How a command renders with Mitsuba (``render``, conf/train.yaml, conf/dataset.yaml,
+    conf/eval.yaml)."""
+
+    what: ClassVar[str] = "the render settings"
+    variant: str = MISSING
+    """Variant of Mitsuba: auto, llvm_ad_rgb, cuda_ad_rgb, scalar_rgb; NRT_MITSUBA_VARIANT wins."""
+    progress: bool = MISSING
+    """True: a progress bar while rendering."""
+
+
+@dataclass
+class SampleRender:
+    """How nrt-sample renders its media (``render``, conf/sample.yaml)."""
+
+    what: ClassVar[str] = "the render settings"
+    variant: str = MISSING
+    """Variant of Mitsuba: auto, llvm_ad_rgb, cuda_ad_rgb, scalar_rgb; NRT_MITSUBA_VARIANT wins."""
+    views: int | None = MISSING
+    """Held-out cameras of the family per sky; null: all."""
+    spp: int | None = MISSING
+    """Samples per pixel; null: the family's."""
+
+
 SCHEMAS: dict[str, type] = {
     "effects": Effects, "split_samples": SplitSamples, "paper_samples": PaperSamples,
     "split_rates": SplitRates, "paper_rates": PaperRates, "sun": Sun, "coupling": Coupling,
     "start": Start, "grids_start": GridsStart, "oracle_start": OracleStart,
+    "render": Render, "sample_render": SampleRender,
 }
 """Name in the ConfigStore's ``schema`` group -> schema, as the config files name them."""
 

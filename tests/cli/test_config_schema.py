@@ -1,7 +1,7 @@
 """The typed settings (nrt/cli/schema.py): a value of the wrong type or an unknown key under
 ``scene.effects``, ``losses.samples``, ``model.lr``, ``model.sun``, ``model.coupling``,
-``init`` or ``model.density`` is refused while the config is composed, with a one-paragraph
-``nrt: error:`` naming the key, what was given, what the key takes and the fix, exit
+``init``, ``model.density`` or ``render`` is refused while the config is composed, with a
+one-paragraph ``nrt: error:`` naming the key, what was given, what the key takes and the fix, exit
 status 2 and nothing written; values a type cannot judge (a negative rate) are left to the
 component. A method named by ``method=<name>`` (conf/method) composes as the stage, mode and
 experiment it stands for."""
@@ -24,7 +24,7 @@ from nrt.cli.schema import SCHEMAS, check_schema_keys, field_doc, field_names
 from nrt.errors import ConfigError
 from tests.conftest import cli_in_process, compose_config, refusal
 
-TYPED = ("scene", "losses", "model", "init")
+TYPED = ("scene", "losses", "model", "init", "render")
 """The roots that hold typed settings (resolved here as nrt-train resolves the config)."""
 
 pytestmark = pytest.mark.integration
@@ -96,6 +96,11 @@ MISTAKES = [  # (overrides, what the message must say)
      "init.grids=[a.npz]: must be a string or null (path of a property-grid .npz file"),
     (("stage=forward", "model.density.source=[ea]"),
      "model.density.source=[ea]: must be a string"),
+    (("render.progress=maybe",), "render.progress=maybe: must be true or false (true: a "
+     "progress bar while rendering)"),
+    (("render.variant=[1]",), "render.variant=[1]: must be a string (variant of Mitsuba"),
+    (("render.varient=scalar_rgb",), "render.varient=scalar_rgb: render has no key 'varient' "
+     "(did you mean 'variant'?); it holds the render settings: variant, progress"),
 ]
 
 
@@ -162,10 +167,30 @@ def test_a_typed_node_holds_exactly_its_schema_keys():
                       ("stage=forward",), ("stage=dpt", "init=grids")):
         cfg = compose_config("train", ["preset=tiny", *overrides])
         for key in ("scene.effects", "losses.samples", "model.lr", "model.sun",
-                    "model.coupling", "init", "model.density"):
+                    "model.coupling", "init", "model.density", "render"):
             node = OmegaConf.select(cfg, key)
             if OmegaConf.is_dict(node):  # dpt's model.lr is one number
                 assert list(node) == field_names(OmegaConf.get_type(node)), (overrides, key)
+
+
+@pytest.mark.parametrize(("config", "override", "needle"), [
+    ("dataset", "render.progress=maybe", "render.progress=maybe: must be true or false"),
+    ("eval", "render.variant=[1]", "render.variant=[1]: must be a string (variant of Mitsuba"),
+    ("sample", "render.views=four", "render.views=four: must be a whole number or null "
+     "(held-out cameras"),
+    ("sample", "render.progress=false", "render.progress=false: render has no key 'progress'"),
+])
+def test_every_command_types_its_render_settings(config, override, needle, monkeypatch):
+    """nrt-data, nrt-eval and nrt-sample refuse a mistyped or unknown render key as
+    nrt-train does (nrt-sample's render settings are its own: views and spp, no bar)."""
+    monkeypatch.setattr(sys, "argv", [f"nrt-{config}", override])
+    try:
+        compose_config(config, [override])
+    except Exception as exc:  # noqa: BLE001 - worded as the command words it
+        message = str(config_mistake(exc, f"nrt-{config}"))
+        assert message.startswith(needle) and "\n" not in message, message
+    else:
+        raise AssertionError(f"{config}: {override} was not refused")
 
 
 CLI_MISTAKES = [  # (overrides of nrt-train, what the message must say)

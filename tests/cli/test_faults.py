@@ -108,7 +108,6 @@ def test_an_output_folder_that_is_a_file_is_refused_before_anything(tmp_path):
 
 
 @pytest.mark.parametrize("override", ["seed=abc", "seed=-1", "seed=4294967296", "seed=1.5",
-                                      "render.progress=maybe", "render.variant=[1]",
                                       "resume=3", "budget_s=-5", "budget_s=soon",
                                       "threads=0", "threads=two", "compile=maybe"])
 def test_scalar_options_are_refused_like_the_budget(override):
