@@ -18,6 +18,7 @@ from nrt.compile import missing_compiler, use_cache
 from nrt.distributed import rank_seed
 from nrt.errors import ConfigError
 from nrt.files import TEMP_MARK, atomic_write, writing
+from nrt.physics.fused_lookup import fused_lookups, use_fused_lookups
 from nrt.stages.schedules import RunClock
 from nrt.stages.stage import Stage
 
@@ -450,6 +451,27 @@ class CompileHotCode(L.Callback):
         if self._first_start is not None and self._first_start > 0:
             pl_module.log("time/first_step_s", time.perf_counter() - self._first_start)
             self._first_start = -1.0
+
+
+class FusedLookups(L.Callback):
+    """With ``enabled`` (``fused_lookups=true``), the grid lookups of the run
+    (:func:`~nrt.physics.volume.sample_grid`) take the fused CPU kernels where they apply
+    (:mod:`nrt.physics.fused_lookup`: the same values, the grid's gradient summed in another
+    order), from setup to teardown."""
+
+    def __init__(self, enabled: bool = False):
+        self.enabled = bool(enabled)
+        self._before: bool | None = None
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        if self._before is None:
+            self._before = fused_lookups()
+            use_fused_lookups(self.enabled)
+
+    def teardown(self, trainer, pl_module, stage: str) -> None:
+        if self._before is not None:
+            use_fused_lookups(self._before)
+            self._before = None
 
 
 class PeakMemory(L.Callback):

@@ -97,3 +97,30 @@ def load_extension(name: str, sources: Sequence[Path]) -> ModuleType:
         lines = str(e).strip().splitlines() or [repr(e)]
         why = next((line for line in lines if "error:" in line), lines[0])
         raise RuntimeError(f"building {name} in {build} failed: {why.strip()[:300]}") from e
+
+
+class LazyExtension:
+    """A C++ extension built at first use (:func:`load_extension`) by whoever asks for it
+    first, or the reason it cannot be built: :meth:`get` warns once per process, naming
+    ``what`` uses it and that ``fallback`` runs instead."""
+
+    def __init__(self, name: str, sources: Sequence[Path], what: str, logger: logging.Logger):
+        self.name, self.sources, self.what, self.log = name, tuple(sources), what, logger
+        self._module: ModuleType | None = None
+        self._why: str | None = None
+
+    def get(self) -> ModuleType | None:
+        """The built extension, or None where it cannot be built (:meth:`unavailable`)."""
+        if self._module is None and self._why is None:
+            try:
+                self._module = load_extension(self.name, self.sources)
+            except RuntimeError as e:
+                self.log.warning("%s is unavailable (%s); using the PyTorch path.", self.what, e)
+                self._why = str(e)
+        return self._module
+
+    def unavailable(self) -> str | None:
+        """Why :meth:`get` could not build the extension; None where it could (or has not
+        tried yet)."""
+        return self._why
+

@@ -22,11 +22,10 @@ TESTS = Path(__file__).resolve().parent
 PACKAGE = TESTS.parent / "nrt"
 
 LAYERS: list[tuple[str, ...]] = [
-    ("nrt.errors", "nrt.files"),
+    ("nrt.errors", "nrt.files", "nrt.compile"),
     ("nrt.physics", "nrt.cameras"),
     ("nrt.mitsuba",),
-    ("nrt.weights", "nrt.metrics", "nrt.run_dirs", "nrt.tensorboard", "nrt.distributed",
-     "nrt.compile"),
+    ("nrt.weights", "nrt.metrics", "nrt.run_dirs", "nrt.tensorboard", "nrt.distributed"),
     ("nrt.data",),
     ("nrt.modules.encodings",),
     ("nrt.modules.fields",),
@@ -39,6 +38,8 @@ LAYERS: list[tuple[str, ...]] = [
 ]
 """Lowest first: a module may import its own layer and the layers before it. Mitsuba sits
 just above the physics (it needs the camera conventions) and below the data, which it renders.
+The compiler check and the C++ extensions' builder sit at the bottom: the physics has fused
+kernels.
 Evaluation sits below the callbacks: the periodic re-render callback runs nrt-eval's
 evaluation."""
 

@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch.profiler import record_function
 
+from nrt.physics import fused_lookup
 from nrt.physics.compositing import stratified_samples
 
 
@@ -89,8 +90,13 @@ def lookup_batches(points: int, device: torch.device) -> int:
 
 def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) -> torch.Tensor:
     """Trilinear, cell-centred, edge-clamped lookup of ``grid`` (Nz, Ny, Nx, C) at world
-    ``points`` (..., 3) in the box ``bbox`` (2, 3). Returns (..., C)."""
+    ``points`` (..., 3) in the box ``bbox`` (2, 3). Returns (..., C). With
+    ``fused_lookups=true`` on the CPU, one fused C++ pass (:mod:`nrt.physics.fused_lookup`)."""
     lead, c = points.shape[:-1], grid.shape[-1]
+    if fused_lookup.fusable(grid, points):
+        out = fused_lookup.fused_sample(grid, points.reshape(-1, 3), bbox)
+        if out is not None:
+            return out.reshape(*lead, c)
     unit = (points - bbox[0]) / (bbox[1] - bbox[0]) * 2 - 1  # [-1, 1], x first as grid_sample wants
     batches = lookup_batches(unit.numel() // 3, points.device)
     vol = grid.permute(3, 0, 1, 2).unsqueeze(0).to(points.dtype)

@@ -17,34 +17,27 @@ from types import ModuleType
 import torch
 from torch.autograd.function import once_differentiable
 
-from nrt.compile import load_extension
+from nrt.compile import LazyExtension
 
 log = logging.getLogger(__name__)
 
 SOURCES = (Path(__file__).with_name("csrc") / "hash_grid.cpp",)
 NAME = "nrt_hash_grid_cpu"
 
-_loaded: dict[str, ModuleType | str] = {}
-"""The extension once :func:`extension` has tried to build it, or why it could not."""
+EXTENSION = LazyExtension(NAME, SOURCES, "hash_grid.fused: the fused CPU hash grid", log)
+"""The kernels, built at first use."""
 
 
 def extension() -> ModuleType | None:
     """The built extension, or None where it cannot be built (warned once per process;
     :func:`unavailable` says why)."""
-    if NAME not in _loaded:
-        try:
-            _loaded[NAME] = load_extension(NAME, SOURCES)
-        except RuntimeError as e:
-            log.warning("hash_grid.fused: the fused CPU hash grid is unavailable (%s); "
-                        "using the PyTorch path.", e)
-            _loaded[NAME] = str(e)
-    return None if isinstance(_loaded[NAME], str) else _loaded[NAME]
+    return EXTENSION.get()
 
 
 def unavailable() -> str | None:
     """Why :func:`extension` could not build the extension; None where it could (or has
     not tried yet)."""
-    return _loaded[NAME] if isinstance(_loaded.get(NAME), str) else None
+    return EXTENSION.unavailable()
 
 
 class FusedEncoding(torch.autograd.Function):

@@ -18,6 +18,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
+from nrt.compile import LazyExtension
 from nrt.modules.encodings import fused_hash_grid
 from nrt.modules.encodings.hash_grid import HashGrid
 from nrt.modules.fields.ea_field import EAField
@@ -147,7 +148,8 @@ def test_the_profiler_scope_surrounds_the_fused_call(ext):
 
 
 def test_without_a_compiler_one_warning_and_the_pytorch_path(monkeypatch, tmp_path, caplog):
-    monkeypatch.setattr(fused_hash_grid, "_loaded", {})  # not built yet in this process
+    monkeypatch.setattr(fused_hash_grid, "EXTENSION", LazyExtension(  # not built yet here
+        fused_hash_grid.NAME, fused_hash_grid.SOURCES, "hash_grid.fused", fused_hash_grid.log))
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.delenv("CXX", raising=False)
     plain, fused = grids("hashed", torch.float32)

@@ -1,0 +1,169 @@
+// Fused CPU kernels of sample_grid (nrt/physics/volume.py): the trilinear, cell-centred,
+// edge-clamped lookup of a channels-last grid (Nz, Ny, Nx, C) at world points, and its
+// gradient with respect to the grid, in one pass each instead of the PyTorch path's
+// normalise / permute / grid_sample / transpose chain. Built at first use by
+// nrt/physics/fused_lookup.py.
+//
+// The forward's arithmetic is the PyTorch path's, operation by operation, in the points'
+// dtype: u = (p - lo) / (hi - lo) * 2 - 1 per axis; grid_sample's source index with
+// align_corners=false, i = ((u + 1) * n - 1) / 2, clipped to [0, n - 1] (its border
+// padding, with its min / max order); base b = floor(i); weights (b + 1 - i) and (i - b) per
+// axis, multiplied x * y * z; the 8 corners summed in grid_sample's order (x fastest, then y,
+// then z), corners outside the grid left out. So its values are grid_sample's bit for bit.
+#include <ATen/ATen.h>
+#include <ATen/Parallel.h>
+#include <torch/csrc/utils/pybind.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+namespace {
+
+constexpr int64_t kPointGrain = 512;        // points per forward task at least
+constexpr int64_t kPointsPerPart = 16384;   // backward: points per partial gradient at least
+constexpr int64_t kMostParts = 8;           // backward: partial gradients at most
+constexpr int64_t kMostPartValues = 1 << 24;  // backward: values of all partials at most
+
+template <typename scalar_t>
+struct Corners {  // one point's 8 corners: flat cell index (-1: outside) and weight
+  int64_t cell[8];
+  scalar_t weight[8];
+};
+
+template <typename scalar_t>
+inline void locate(const scalar_t* p, const scalar_t* lo, const scalar_t* extent,
+                   const int64_t* size, Corners<scalar_t>& out) {
+  int64_t base[3];
+  scalar_t w[3][2];  // [axis][corner bit]: b + 1 - i, i - b
+  for (int a = 0; a < 3; ++a) {
+    const scalar_t u = (p[a] - lo[a]) / extent[a] * scalar_t(2) - scalar_t(1);
+    const scalar_t n = static_cast<scalar_t>(size[a]);
+    scalar_t i = ((u + scalar_t(1)) * n - scalar_t(1)) / scalar_t(2);
+    i = std::min(static_cast<scalar_t>(size[a] - 1), std::max(i, scalar_t(0)));
+    base[a] = static_cast<int64_t>(std::floor(i));
+    w[a][0] = static_cast<scalar_t>(base[a] + 1) - i;
+    w[a][1] = i - static_cast<scalar_t>(base[a]);
+  }
+  for (int c = 0; c < 8; ++c) {
+    const int bx = c & 1, by = (c >> 1) & 1, bz = (c >> 2) & 1;
+    const int64_t x = base[0] + bx, y = base[1] + by, z = base[2] + bz;
+    const bool inside = x >= 0 && x < size[0] && y >= 0 && y < size[1] && z >= 0 &&
+                        z < size[2];
+    out.cell[c] = inside ? x + size[0] * (y + size[1] * z) : -1;
+    out.weight[c] = w[0][bx] * w[1][by] * w[2][bz];
+  }
+}
+
+struct Shape {  // the grid's cells per axis, x first, and its channels
+  int64_t size[3];
+  int64_t channels;
+};
+
+Shape check(const at::Tensor& grid, const at::Tensor& points, const at::Tensor& bbox) {
+  TORCH_CHECK(grid.device().is_cpu() && grid.is_contiguous() && grid.dim() == 4,
+              "sample_grid fused: the grid must be a contiguous CPU tensor (Nz, Ny, Nx, C)");
+  TORCH_CHECK(points.device().is_cpu() && points.is_contiguous() && points.dim() == 2 &&
+                  points.size(1) == 3,
+              "sample_grid fused: the points must be a contiguous CPU tensor (P, 3)");
+  TORCH_CHECK(bbox.device().is_cpu() && bbox.is_contiguous() && bbox.dim() == 2 &&
+                  bbox.size(0) == 2 && bbox.size(1) == 3,
+              "sample_grid fused: the box must be a contiguous CPU tensor (2, 3)");
+  TORCH_CHECK(grid.scalar_type() == points.scalar_type() &&
+                  bbox.scalar_type() == points.scalar_type(),
+              "sample_grid fused: grid, points and box must have one dtype");
+  return Shape{{grid.size(2), grid.size(1), grid.size(0)}, grid.size(3)};
+}
+
+// (Nz, Ny, Nx, C) grid, (P, 3) points, (2, 3) box -> (P, C). Parallel over points: each
+// task writes its own output rows, so any thread count gives the same bits.
+at::Tensor forward(const at::Tensor& grid, const at::Tensor& points, const at::Tensor& bbox) {
+  const Shape s = check(grid, points, bbox);
+  const int64_t n = points.size(0), c = s.channels;
+  at::Tensor out = at::empty({n, c}, grid.options());
+  AT_DISPATCH_FLOATING_TYPES(grid.scalar_type(), "grid_lookup_forward", [&] {
+    const scalar_t* g = grid.data_ptr<scalar_t>();
+    const scalar_t* pp = points.data_ptr<scalar_t>();
+    const scalar_t* bp = bbox.data_ptr<scalar_t>();
+    const scalar_t lo[3] = {bp[0], bp[1], bp[2]};
+    const scalar_t extent[3] = {bp[3] - bp[0], bp[4] - bp[1], bp[5] - bp[2]};
+    scalar_t* op = out.data_ptr<scalar_t>();
+    at::parallel_for(0, n, kPointGrain, [&](int64_t begin, int64_t end) {
+      Corners<scalar_t> k;
+      for (int64_t p = begin; p < end; ++p) {
+        locate(pp + 3 * p, lo, extent, s.size, k);
+        scalar_t* o = op + p * c;
+        for (int64_t ch = 0; ch < c; ++ch) o[ch] = scalar_t(0);
+        for (int corner = 0; corner < 8; ++corner) {
+          if (k.cell[corner] < 0) continue;
+          const scalar_t* v = g + k.cell[corner] * c;
+          for (int64_t ch = 0; ch < c; ++ch) o[ch] += v[ch] * k.weight[corner];
+        }
+      }
+    });
+  });
+  return out;
+}
+
+// How many partial gradients the backward sums: from the sizes alone (never the thread
+// count), so that the gradient has the same bits on any number of threads.
+int64_t parts_for(int64_t points, int64_t values) {
+  int64_t parts = std::min(kMostParts, std::max<int64_t>(1, points / kPointsPerPart));
+  while (parts > 1 && parts * values > kMostPartValues) --parts;
+  return parts;
+}
+
+// d loss / d grid (Nz, Ny, Nx, C) from d loss / d values (P, C): the scatter-add of
+// grad * weight into each corner. The points are cut into a fixed number of contiguous
+// parts (parts_for), each scattered in order into a partial gradient of its own by one task,
+// and the partials are summed in order: no atomics, and the sums' order depends on the sizes
+// only.
+at::Tensor backward(const at::Tensor& grad, const at::Tensor& points, const at::Tensor& bbox,
+                    at::IntArrayRef grid_shape) {
+  TORCH_CHECK(grid_shape.size() == 4, "sample_grid fused: the grid's shape is (Nz, Ny, Nx, C)");
+  const int64_t cells = grid_shape[0] * grid_shape[1] * grid_shape[2], c = grid_shape[3];
+  const at::Tensor like = at::empty({0, 0, 0, c}, grad.options());
+  const Shape s{{grid_shape[2], grid_shape[1], grid_shape[0]}, c};
+  check(like, points, bbox);
+  TORCH_CHECK(grad.device().is_cpu() && grad.is_contiguous() && grad.dim() == 2 &&
+                  grad.size(0) == points.size(0) && grad.size(1) == c,
+              "sample_grid fused: the gradient must be a contiguous CPU tensor (P, C)");
+  const int64_t n = points.size(0), parts = parts_for(n, cells * c);
+  at::Tensor partial = at::zeros({parts, grid_shape[0], grid_shape[1], grid_shape[2], c},
+                                 grad.options());
+  AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "grid_lookup_backward", [&] {
+    const scalar_t* gp = grad.data_ptr<scalar_t>();
+    const scalar_t* pp = points.data_ptr<scalar_t>();
+    const scalar_t* bp = bbox.data_ptr<scalar_t>();
+    const scalar_t lo[3] = {bp[0], bp[1], bp[2]};
+    const scalar_t extent[3] = {bp[3] - bp[0], bp[4] - bp[1], bp[5] - bp[2]};
+    scalar_t* out = partial.data_ptr<scalar_t>();
+    at::parallel_for(0, parts, 1, [&](int64_t begin, int64_t end) {
+      Corners<scalar_t> k;
+      for (int64_t part = begin; part < end; ++part) {
+        scalar_t* dst = out + part * cells * c;
+        const int64_t first = n * part / parts, last = n * (part + 1) / parts;
+        for (int64_t p = first; p < last; ++p) {
+          locate(pp + 3 * p, lo, extent, s.size, k);
+          const scalar_t* g = gp + p * c;
+          for (int corner = 0; corner < 8; ++corner) {
+            if (k.cell[corner] < 0) continue;
+            scalar_t* row = dst + k.cell[corner] * c;
+            for (int64_t ch = 0; ch < c; ++ch) row[ch] += g[ch] * k.weight[corner];
+          }
+        }
+      }
+    });
+  });
+  if (parts == 1) return partial[0];
+  at::Tensor total = partial[0].clone();
+  for (int64_t part = 1; part < parts; ++part) total.add_(partial[part]);
+  return total;
+}
+
+}  // namespace
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "sample_grid's lookup of points (P, 3)");
+  m.def("backward", &backward, "sample_grid's gradient with respect to the grid");
+}

@@ -1,0 +1,86 @@
+"""Fused CPU kernels of :func:`~nrt.physics.volume.sample_grid` (``fused_lookups=true``): the
+trilinear lookup of a channels-last grid at world points, and its gradient with respect to
+the grid, in one C++ pass each (``csrc/grid_lookup.cpp``, built at first use by
+:class:`nrt.compile.LazyExtension` and cached per machine). The values are the PyTorch
+path's bit for bit; the grid's gradient sums in another order (a fixed number of partial
+sums set by the sizes alone, so the same bits on any thread count). There is no gradient
+with respect to the points: :func:`~nrt.physics.volume.sample_grid` takes the PyTorch path
+where one is needed, on other devices, and where the extension cannot be built (one warning
+per process says why).
+
+The switch is process-wide (:func:`use_fused_lookups`, set by the ``fused_lookups``
+callback of nrt-train), like torch's own backend flags: every lookup of a run goes the same
+way.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+from torch.autograd.function import once_differentiable
+
+from nrt.compile import LazyExtension
+
+log = logging.getLogger(__name__)
+
+EXTENSION = LazyExtension("nrt_grid_lookup_cpu", (Path(__file__).with_name("csrc") /
+                                                  "grid_lookup.cpp",),
+                          "fused_lookups: the fused CPU grid lookup", log)
+"""The kernels, built at first use."""
+
+_ENABLED = [False]
+"""Whether :func:`~nrt.physics.volume.sample_grid` uses the kernels where they apply."""
+
+
+def use_fused_lookups(enabled: bool) -> None:
+    """Switch the fused kernels on or off for every later lookup of this process."""
+    _ENABLED[0] = bool(enabled)
+
+
+def fused_lookups() -> bool:
+    """Whether the fused kernels are switched on (:func:`use_fused_lookups`)."""
+    return _ENABLED[0]
+
+
+def fusable(grid: torch.Tensor, points: torch.Tensor) -> bool:
+    """Whether the fused kernels compute this lookup: switched on, CPU tensors, float32 or
+    float64 points, no gradient needed with respect to the points."""
+    return (_ENABLED[0] and points.device.type == "cpu" and grid.device.type == "cpu"
+            and points.dtype in (torch.float32, torch.float64)
+            and not (points.requires_grad and torch.is_grad_enabled()))
+
+
+class FusedLookup(torch.autograd.Function):
+    """``(grid (Nz, Ny, Nx, C), points (P, 3), bbox (2, 3)) -> (P, C)``, all of one dtype;
+    differentiable in the grid only."""
+
+    @staticmethod
+    def forward(ctx, grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor
+                ) -> torch.Tensor:
+        ctx.save_for_backward(points, bbox)
+        ctx.shape = tuple(grid.shape)
+        return EXTENSION.get().forward(grid, points, bbox)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, None, None]:
+        if not ctx.needs_input_grad[0]:
+            return None, None, None
+        points, bbox = ctx.saved_tensors
+        return EXTENSION.get().backward(grad.contiguous(), points, bbox, list(ctx.shape)), \
+            None, None
+
+
+@torch.compiler.disable  # an opaque C++ call: compiled code runs it eagerly
+def fused_sample(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor
+                 ) -> torch.Tensor | None:
+    """The lookup (P, C) of ``grid`` (Nz, Ny, Nx, C) at ``points`` (P, 3) in ``bbox``,
+    the grid and box cast to the points' dtype, or None where the extension cannot be built
+    (the caller takes the PyTorch path)."""
+    if EXTENSION.get() is None:
+        return None
+    dtype = points.dtype
+    return FusedLookup.apply(grid.to(dtype).contiguous(), points.contiguous(),
+                             bbox.to(dtype).contiguous())

@@ -1,0 +1,161 @@
+"""The fused CPU grid lookup (``fused_lookups=true``) against the PyTorch path of
+:func:`~nrt.physics.volume.sample_grid`: the same values bit for bit (inside, on the faces and
+outside the box, on cubes and uneven grids), the grid's gradient, the same bits on 1 and 2
+threads, and the PyTorch path where a gradient with respect to the points is needed, where
+the switch is off or where nothing can be built.
+
+Tolerances. The values are grid_sample's operation by operation, so they are held to
+equality. The gradient forms the same products ``grad * w`` and sums them per cell in
+another order (parts of the points, then the parts): two orders of n terms differ by at most
+2 n u S, S the cell's sum of |grad * w| (the PyTorch path's gradient for |grad|, the weights
+being >= 0), n <= 8 P; float64 is held to 1e-12 relative.
+"""
+
+import logging
+
+import pytest
+import torch
+
+from nrt.callbacks import FusedLookups
+from nrt.compile import LazyExtension
+from nrt.physics import fused_lookup
+from nrt.physics.volume import sample_grid
+
+pytestmark = pytest.mark.unit
+
+BOX = torch.tensor([[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]])
+"""A box that is neither centred nor a cube."""
+
+
+@pytest.fixture(scope="module")
+def ext():
+    """The extension (built once per machine, then cached), or a skip saying why not."""
+    module = fused_lookup.EXTENSION.get()
+    if module is None:
+        pytest.skip(f"the fused lookup cannot be built: {fused_lookup.EXTENSION.unavailable()}")
+    return module
+
+
+@pytest.fixture()
+def fused():
+    """The switch on for one test."""
+    before = fused_lookup.fused_lookups()
+    fused_lookup.use_fused_lookups(True)
+    yield
+    fused_lookup.use_fused_lookups(before)
+
+
+def points(n: int, dtype: torch.dtype) -> torch.Tensor:
+    """Random points in the box grown by a fifth each way (some outside), with its corners,
+    a face and a cell centre."""
+    torch.manual_seed(1)
+    lo, hi = BOX[0].to(dtype), BOX[1].to(dtype)
+    x = lo + (torch.rand(n, 3, dtype=dtype) * 1.4 - 0.2) * (hi - lo)
+    x[:4] = torch.stack([lo, hi, torch.stack([lo[0], hi[1], (lo[2] + hi[2]) / 2]),
+                         lo + (hi - lo) / 16])
+    return x
+
+
+def plain_and_fused(grid: torch.Tensor, x: torch.Tensor, grad: torch.Tensor):
+    """(values, grid gradient) by the PyTorch path, then by the fused one."""
+    out = []
+    for on in (False, True):
+        fused_lookup.use_fused_lookups(on)
+        g = grid.detach().clone().requires_grad_(True)
+        values = sample_grid(g, x, BOX)
+        assert fused_in_graph(values) == on
+        values.backward(grad)
+        out.append((values.detach(), g.grad))
+    return out
+
+
+def fused_in_graph(out: torch.Tensor) -> bool:
+    """Whether the fused kernels computed ``out`` (its autograd graph holds their node)."""
+    todo, seen = [out.grad_fn], set()
+    while todo:
+        node = todo.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        if node.name().startswith("FusedLookup"):
+            return True
+        todo += [n for n, _ in node.next_functions]
+    return False
+
+
+@pytest.mark.parametrize("shape", [(8, 8, 8, 4), (5, 7, 9, 3), (4, 4, 4, 48)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_values_are_the_pytorch_paths_and_the_gradient_matches(ext, fused, shape, dtype):
+    torch.manual_seed(0)
+    grid = torch.randn(*shape, dtype=dtype)
+    x = points(3000, dtype).view(3, 1000, 3)  # leading dimensions are kept
+    grad = torch.randn(3, 1000, shape[-1], dtype=dtype)
+    (want, want_g), (got, got_g) = plain_and_fused(grid, x, grad)
+    assert got.shape == want.shape == (3, 1000, shape[-1]) and torch.equal(got, want)
+    if dtype == torch.float64:
+        torch.testing.assert_close(got_g, want_g, rtol=1e-12, atol=1e-12)
+    else:
+        (_, scale), _ = plain_and_fused(grid, x, grad.abs())
+        assert ((got_g - want_g).abs() <= 2 * 8 * 3000 * 2.0**-24 * scale).all()
+    assert got_g.abs().sum() > 0
+
+
+def test_a_float32_grid_at_float64_points_is_looked_up_in_float64(ext, fused):
+    grid = torch.randn(6, 6, 6, 2)
+    x = points(100, torch.float64)
+    (want, _), (got, _) = plain_and_fused(grid, x, torch.ones(100, 2, dtype=torch.float64))
+    assert got.dtype == torch.float64 and torch.equal(got, want)
+
+
+def test_one_and_two_threads_give_the_same_bits(ext, fused):
+    torch.manual_seed(0)
+    grid = torch.randn(16, 16, 16, 4)
+    x = points(40000, torch.float32)  # more points than one partial gradient holds
+    grad = torch.randn(len(x), 4)
+    threads = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            runs.append(plain_and_fused(grid, x, grad)[1])
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+
+
+def test_a_gradient_with_respect_to_the_points_takes_the_pytorch_path(ext, fused):
+    grid = torch.randn(6, 6, 6, 3, dtype=torch.float64)
+    x = points(50, torch.float64).requires_grad_(True)
+    got = sample_grid(grid, x, BOX)
+    assert not fused_in_graph(got)
+    (gx,) = torch.autograd.grad(got.sum(), x)
+    assert gx.abs().sum() > 0
+    with torch.no_grad():  # no graph: nothing needs d/dx, the fused path runs
+        assert torch.equal(sample_grid(grid, x, BOX), got.detach())
+
+
+def test_off_by_default_and_the_callback_switches_it_for_the_run():
+    assert not fused_lookup.fused_lookups()
+    callback = FusedLookups(enabled=True)
+    callback.setup(None, None, "fit")
+    assert fused_lookup.fused_lookups()
+    callback.teardown(None, None, "fit")
+    assert not fused_lookup.fused_lookups()
+    grid, x = torch.randn(4, 4, 4, 1), points(8, torch.float32)
+    assert not fused_in_graph(sample_grid(grid.requires_grad_(True), x, BOX))
+
+
+def test_without_a_compiler_one_warning_and_the_pytorch_path(monkeypatch, tmp_path, caplog,
+                                                              fused):
+    monkeypatch.setattr(fused_lookup, "EXTENSION", LazyExtension(  # not built yet here
+        fused_lookup.EXTENSION.name, fused_lookup.EXTENSION.sources, "fused_lookups",
+        fused_lookup.log))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)
+    grid, x = torch.randn(4, 4, 4, 2), points(64, torch.float32)
+    with caplog.at_level(logging.WARNING, logger=fused_lookup.__name__):
+        first, second = sample_grid(grid, x, BOX), sample_grid(grid, x, BOX)
+    fused_lookup.use_fused_lookups(False)
+    assert torch.equal(first, sample_grid(grid, x, BOX)) and torch.equal(second, first)
+    assert len(caplog.records) == 1 and "no C++ compiler found" in caplog.text
+    assert "PyTorch path" in caplog.text and "no C++" in fused_lookup.EXTENSION.unavailable()
