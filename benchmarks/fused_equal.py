@@ -1,15 +1,20 @@
-"""Stage 1 with the PyTorch hash grid and with the fused one, at equal steps: held-out PSNR,
-density correlation and training seconds per scene and seed, one run after the other.
+"""A fused CPU kernel switched off and on at equal steps: stage 1 with the fused hash grid, or
+stage 2 with the fused grid lookups, per scene and seed, one run after the other.
 
-    python -m benchmarks.fused_equal --scenes default,heldout2 --seeds 0,1 \
-        [--preset cpu] [--table docs/data/step_speed/fused_hash_grid_ea_equal.csv]
+    python -m benchmarks.fused_equal --kernel hash_grid --scenes default,heldout2 --seeds 0,1
+    python -m benchmarks.fused_equal --kernel lookups --scenes default,heldout2 --seeds 0,1
 
-Each (scene, seed) trains ``nrt-train stage=ea`` twice, ``hash_grid.fused=false`` then
-``true``, under ``<output dir>/equal`` (datasets from the shared cache), and appends one row
-per run to the table: ``val/psnr`` (held-out views), ``val/density_corr`` and
-``val/density_rel_err`` from the run's ``run.json``, and ``time/wall_s``, the training's
-seconds. The pairs differ only in the hash grid's order of sums (docs/conventions.md), so
-what separates them is chance; the seed spread of one side is the scale to judge them by.
+``--kernel hash_grid`` trains ``nrt-train stage=ea`` with
+``model.density_field.hash_grid.fused=false`` then ``true`` and appends a row per run to
+``docs/data/step_speed/fused_hash_grid_ea_equal.csv``: the held-out PSNR, the density
+correlation and relative error. ``--kernel lookups`` trains ``nrt-train stage=rte`` from the
+scene's EA checkpoint (the newest finished one under the output folder, else a new one; the
+same for both runs) with ``fused_lookups=false`` then ``true`` and appends to
+``docs/data/step_speed/fused_lookups_rte_equal.csv``: the held-out PSNR and the property
+MSEs x100. Both add the steps, the training seconds and the commit; the runs go under
+``<output dir>/equal`` (datasets from the shared cache). A kernel changes only the order of
+float sums, so what separates a pair is chance; the seed spread of one side is the scale to
+judge them by.
 """
 
 from __future__ import annotations
@@ -18,50 +23,60 @@ import argparse
 import csv
 from pathlib import Path
 
-from benchmarks.common import SCENES, commit_of, output_dir, train
+from benchmarks.common import SCENES, commit_of, ea_checkpoint, output_dir, train
 from nrt.run_dirs import read_run_info
 
-COLUMNS = ("scene", "preset", "seed", "fused", "steps", "train_s", "psnr_heldout",
-           "density_corr", "density_rel_err", "code")
-"""The table's columns; ``fused`` is the switch of the row's run."""
+KERNELS = {  # name -> (stage, switch, table, the run's final metrics kept: column -> key)
+    "hash_grid": ("ea", "model.density_field.hash_grid.fused",
+                  "docs/data/step_speed/fused_hash_grid_ea_equal.csv",
+                  {"psnr_heldout": "val/psnr", "density_corr": "val/density_corr",
+                   "density_rel_err": "val/density_rel_err"}),
+    "lookups": ("rte", "fused_lookups", "docs/data/step_speed/fused_lookups_rte_equal.csv",
+                {"psnr_heldout": "val/psnr", "mse_sigma_a_x100": "val/mse_sigma_a_x100",
+                 "mse_sigma_s_x100": "val/mse_sigma_s_x100",
+                 "mse_sigma_t_x100": "val/mse_sigma_t_x100"}),
+}
 
 
-def row(run: Path, scene: str, preset: str, seed: int, fused: bool, code: str) -> dict:
-    """The table's row of a finished stage-1 run."""
+def row(run: Path, keep: dict[str, str]) -> dict:
+    """The measured part of a finished run's row: steps, training seconds and ``keep``."""
     info = read_run_info(run)
     final = info["final_metrics"]
-    return {"scene": scene, "preset": preset, "seed": seed, "fused": fused,
-            "steps": info["finished_step"], "train_s": round(final["time/wall_s"], 1),
-            "psnr_heldout": round(final["val/psnr"], 3),
-            "density_corr": round(final["val/density_corr"], 4),
-            "density_rel_err": round(final["val/density_rel_err"], 4), "code": code}
+    return {"steps": info["finished_step"], "train_s": round(final["time/wall_s"], 1),
+            **{column: round(final[key], 4) for column, key in keep.items()}}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--kernel", choices=sorted(KERNELS), default="hash_grid")
     parser.add_argument("--scenes", default="default", help="benchmark scenes, comma-separated")
     parser.add_argument("--seeds", default="0", help="training seeds, comma-separated")
     parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--table", type=Path,
-                        default=Path("docs/data/step_speed/fused_hash_grid_ea_equal.csv"))
+    parser.add_argument("--table", type=Path, help="default: the kernel's table")
     args = parser.parse_args()
+    stage, switch, default_table, keep = KERNELS[args.kernel]
+    table_path = args.table or Path(default_table)
+    columns = ["scene", "preset", "seed", "fused", "steps", "train_s", *keep, "code"]
     out = output_dir() / "equal"
     out.mkdir(parents=True, exist_ok=True)
     code = commit_of(Path(__file__).resolve().parent.parent)
-    new = not args.table.exists()
-    with open(args.table, "a", newline="") as f:
-        table = csv.DictWriter(f, fieldnames=COLUMNS)
+    new = not table_path.exists()
+    with open(table_path, "a", newline="") as f:
+        table = csv.DictWriter(f, fieldnames=columns)
         if new:
             table.writeheader()
         for scene in args.scenes.split(","):
+            start = ([f"init.ea_ckpt={ea_checkpoint(scene, args.preset)}"]
+                     if stage == "rte" else [])
             for seed in (int(s) for s in args.seeds.split(",")):
                 for fused in (False, True):
-                    run, _ = train("ea", out, args.preset, [
-                        *SCENES[scene], f"seed={seed}",
-                        f"model.density_field.hash_grid.fused={str(fused).lower()}"])
-                    table.writerow(row(run, scene, args.preset, seed, fused, code))
+                    run, _ = train(stage, out, args.preset, [
+                        *SCENES[scene], *start, f"seed={seed}",
+                        f"{switch}={str(fused).lower()}"])
+                    table.writerow({"scene": scene, "preset": args.preset, "seed": seed,
+                                    "fused": fused, **row(run, keep), "code": code})
                     f.flush()
-                    print(f"{scene} seed {seed} fused={fused}: {run}", flush=True)
+                    print(f"{scene} seed {seed} {switch}={fused}: {run}", flush=True)
 
 
 if __name__ == "__main__":
