@@ -457,7 +457,7 @@ class FusedLookups(L.Callback):
     """With ``enabled`` (``fused_lookups=true``), the grid lookups of the run
     (:func:`~nrt.physics.volume.sample_grid`) take the fused CPU kernels where they apply
     (:mod:`nrt.physics.fused_lookup`: the same values, the grid's gradient summed in another
-    order), from setup to teardown."""
+    order), from setup to teardown (or an error)."""
 
     def __init__(self, enabled: bool = False):
         self.enabled = bool(enabled)
@@ -472,6 +472,9 @@ class FusedLookups(L.Callback):
         if self._before is not None:
             use_fused_lookups(self._before)
             self._before = None
+
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+        self.teardown(trainer, pl_module, "fit")  # Lightning skips teardown after an error
 
 
 class PeakMemory(L.Callback):

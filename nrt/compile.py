@@ -64,10 +64,10 @@ def extensions_dir() -> Path:
 
 def load_extension(name: str, sources: Sequence[Path]) -> ModuleType:
     """The C++ extension ``name`` built from ``sources`` with ``torch.utils.cpp_extension``
-    (``-O3``, and OpenMP where ATen's thread pool is OpenMP's, so that ``at::parallel_for``
-    runs on ``torch.get_num_threads()`` threads) and imported. The build goes to
-    ``extensions_dir()/<name>/<python>_torch<version>`` and is reused until a source or a
-    flag changes. Raises RuntimeError saying why where it cannot be built."""
+    (``-O3`` without fused multiply-adds, and OpenMP where ATen's thread pool is OpenMP's, so
+    that ``at::parallel_for`` runs on ``torch.get_num_threads()`` threads) and imported. The
+    build goes to ``extensions_dir()/<name>/<python>_torch<version>`` and is reused until a
+    source or a flag changes. Raises RuntimeError saying why where it cannot be built."""
     missing = missing_compiler("cpu")
     if missing:
         raise RuntimeError(missing)
@@ -84,7 +84,7 @@ def load_extension(name: str, sources: Sequence[Path]) -> ModuleType:
     if not cpp_extension.is_ninja_available():
         raise RuntimeError("torch builds C++ extensions with ninja, which is not installed "
                            "(pip install ninja)")
-    flags = ["-O3"]
+    flags = ["-O3", "-ffp-contract=off"]  # no fused multiply-adds: PyTorch's rounding
     if torch.backends.openmp.is_available() and sys.platform != "win32":
         flags.append("-fopenmp")
     version = f"py{sys.version_info.major}{sys.version_info.minor}_torch{torch.__version__}"
@@ -92,7 +92,7 @@ def load_extension(name: str, sources: Sequence[Path]) -> ModuleType:
     build.mkdir(parents=True, exist_ok=True)
     try:
         return cpp_extension.load(name, [str(s) for s in sources], extra_cflags=flags,
-                                  extra_ldflags=flags[1:], build_directory=str(build))
+                                  extra_ldflags=flags[2:], build_directory=str(build))
     except Exception as e:  # a compiler error, missing headers: say which, in a line
         lines = str(e).strip().splitlines() or [repr(e)]
         why = next((line for line in lines if "error:" in line), lines[0])

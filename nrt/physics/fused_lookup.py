@@ -44,12 +44,14 @@ def fused_lookups() -> bool:
     return _ENABLED[0]
 
 
-def fusable(grid: torch.Tensor, points: torch.Tensor) -> bool:
+def fusable(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) -> bool:
     """Whether the fused kernels compute this lookup: switched on, CPU tensors, float32 or
-    float64 points, no gradient needed with respect to the points."""
-    return (_ENABLED[0] and points.device.type == "cpu" and grid.device.type == "cpu"
-            and points.dtype in (torch.float32, torch.float64)
-            and not (points.requires_grad and torch.is_grad_enabled()))
+    float64 points with a box of their dtype (the PyTorch path forms the box's extent in
+    the box's dtype), no gradient needed with respect to the points or the box."""
+    return (_ENABLED[0] and points.device.type == grid.device.type == bbox.device.type == "cpu"
+            and points.dtype in (torch.float32, torch.float64) and bbox.dtype == points.dtype
+            and not ((points.requires_grad or bbox.requires_grad)
+                     and torch.is_grad_enabled()))
 
 
 class FusedLookup(torch.autograd.Function):
@@ -76,11 +78,11 @@ class FusedLookup(torch.autograd.Function):
 @torch.compiler.disable  # an opaque C++ call: compiled code runs it eagerly
 def fused_sample(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor
                  ) -> torch.Tensor | None:
-    """The lookup (P, C) of ``grid`` (Nz, Ny, Nx, C) at ``points`` (P, 3) in ``bbox``,
-    the grid and box cast to the points' dtype, or None where the extension cannot be built
-    (the caller takes the PyTorch path)."""
+    """The lookup (P, C) of ``grid`` (Nz, Ny, Nx, C) at ``points`` (P, 3) in ``bbox``
+    (of the points' dtype), the grid cast to the points' dtype, or None where the extension
+    cannot be built (the caller takes the PyTorch path)."""
     if EXTENSION.get() is None:
         return None
     dtype = points.dtype
     return FusedLookup.apply(grid.to(dtype).contiguous(), points.contiguous(),
-                             bbox.to(dtype).contiguous())
+                             bbox.contiguous())

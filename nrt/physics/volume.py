@@ -93,7 +93,7 @@ def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) ->
     ``points`` (..., 3) in the box ``bbox`` (2, 3). Returns (..., C). With
     ``fused_lookups=true`` on the CPU, one fused C++ pass (:mod:`nrt.physics.fused_lookup`)."""
     lead, c = points.shape[:-1], grid.shape[-1]
-    if fused_lookup.fusable(grid, points):
+    if fused_lookup.fusable(grid, points, bbox):
         out = fused_lookup.fused_sample(grid, points.reshape(-1, 3), bbox)
         if out is not None:
             return out.reshape(*lead, c)

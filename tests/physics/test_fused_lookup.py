@@ -56,14 +56,17 @@ def points(n: int, dtype: torch.dtype) -> torch.Tensor:
     return x
 
 
-def plain_and_fused(grid: torch.Tensor, x: torch.Tensor, grad: torch.Tensor):
-    """(values, grid gradient) by the PyTorch path, then by the fused one."""
+def plain_and_fused(grid: torch.Tensor, x: torch.Tensor, grad: torch.Tensor,
+                    box: torch.Tensor | None = None, fuses: bool = True):
+    """(values, grid gradient) by the PyTorch path, then with the switch on (where
+    ``fuses``, by the fused kernels); ``box``: :data:`BOX` in the points' dtype."""
+    box = BOX.to(x.dtype) if box is None else box
     out = []
     for on in (False, True):
         fused_lookup.use_fused_lookups(on)
         g = grid.detach().clone().requires_grad_(True)
-        values = sample_grid(g, x, BOX)
-        assert fused_in_graph(values) == on
+        values = sample_grid(g, x, box)
+        assert fused_in_graph(values) == (on and fuses)
         values.backward(grad)
         out.append((values.detach(), g.grad))
     return out
@@ -83,20 +86,23 @@ def fused_in_graph(out: torch.Tensor) -> bool:
     return False
 
 
-@pytest.mark.parametrize("shape", [(8, 8, 8, 4), (5, 7, 9, 3), (4, 4, 4, 48)])
+@pytest.mark.parametrize(("shape", "n"), [((8, 8, 8, 4), 3000), ((5, 7, 9, 3), 3000),
+                                          ((4, 4, 4, 48), 3000), ((6, 5, 4, 2), 40000)])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_values_are_the_pytorch_paths_and_the_gradient_matches(ext, fused, shape, dtype):
+def test_values_are_the_pytorch_paths_and_the_gradient_matches(ext, fused, shape, n, dtype):
+    """40000 points: the PyTorch path splits the lookup per thread and the kernel sums two
+    partial gradients, so the orders differ there."""
     torch.manual_seed(0)
     grid = torch.randn(*shape, dtype=dtype)
-    x = points(3000, dtype).view(3, 1000, 3)  # leading dimensions are kept
-    grad = torch.randn(3, 1000, shape[-1], dtype=dtype)
+    x = points(n, dtype).view(4, n // 4, 3)  # leading dimensions are kept
+    grad = torch.randn(4, n // 4, shape[-1], dtype=dtype)
     (want, want_g), (got, got_g) = plain_and_fused(grid, x, grad)
-    assert got.shape == want.shape == (3, 1000, shape[-1]) and torch.equal(got, want)
+    assert got.shape == want.shape == (4, n // 4, shape[-1]) and torch.equal(got, want)
     if dtype == torch.float64:
         torch.testing.assert_close(got_g, want_g, rtol=1e-12, atol=1e-12)
     else:
         (_, scale), _ = plain_and_fused(grid, x, grad.abs())
-        assert ((got_g - want_g).abs() <= 2 * 8 * 3000 * 2.0**-24 * scale).all()
+        assert ((got_g - want_g).abs() <= 2 * 8 * n * 2.0**-24 * scale).all()
     assert got_g.abs().sum() > 0
 
 
@@ -105,6 +111,16 @@ def test_a_float32_grid_at_float64_points_is_looked_up_in_float64(ext, fused):
     x = points(100, torch.float64)
     (want, _), (got, _) = plain_and_fused(grid, x, torch.ones(100, 2, dtype=torch.float64))
     assert got.dtype == torch.float64 and torch.equal(got, want)
+
+
+def test_a_box_of_another_dtype_takes_the_pytorch_path(ext, fused):
+    """The PyTorch path forms a float32 box's extent in float32; an inexact one shows it."""
+    box = torch.tensor([[0.1, -0.3, -2.2], [0.7, 1.1, 0.05]])
+    x = points(500, torch.float64) * 0.3
+    (want, _), (got, _) = plain_and_fused(torch.randn(5, 5, 5, 2), x,
+                                          torch.ones(500, 2, dtype=torch.float64), box,
+                                          fuses=False)
+    assert torch.equal(got, want)
 
 
 def test_one_and_two_threads_give_the_same_bits(ext, fused):
@@ -123,24 +139,36 @@ def test_one_and_two_threads_give_the_same_bits(ext, fused):
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
 
 
-def test_a_gradient_with_respect_to_the_points_takes_the_pytorch_path(ext, fused):
-    grid = torch.randn(6, 6, 6, 3, dtype=torch.float64)
+def test_a_gradient_with_respect_to_the_points_takes_the_pytorch_path(ext, fused, monkeypatch):
+    grid, box = torch.randn(6, 6, 6, 3, dtype=torch.float64), BOX.double()
     x = points(50, torch.float64).requires_grad_(True)
-    got = sample_grid(grid, x, BOX)
+    got = sample_grid(grid, x, box)
     assert not fused_in_graph(got)
     (gx,) = torch.autograd.grad(got.sum(), x)
     assert gx.abs().sum() > 0
+    calls = []
+    monkeypatch.setattr(fused_lookup.FusedLookup, "apply",
+                        lambda *a, apply=fused_lookup.FusedLookup.apply: calls.append(1) or
+                        apply(*a))
     with torch.no_grad():  # no graph: nothing needs d/dx, the fused path runs
-        assert torch.equal(sample_grid(grid, x, BOX), got.detach())
+        assert torch.equal(sample_grid(grid, x, box), got.detach())
+    assert calls == [1]
 
 
 def test_off_by_default_and_the_callback_switches_it_for_the_run():
     assert not fused_lookup.fused_lookups()
-    callback = FusedLookups(enabled=True)
-    callback.setup(None, None, "fit")
-    assert fused_lookup.fused_lookups()
-    callback.teardown(None, None, "fit")
-    assert not fused_lookup.fused_lookups()
+    try:
+        for end in ("teardown", "on_exception"):  # Lightning skips teardown after an error
+            callback = FusedLookups(enabled=True)
+            callback.setup(None, None, "fit")
+            assert fused_lookup.fused_lookups()
+            if end == "teardown":
+                callback.teardown(None, None, "fit")
+            else:
+                callback.on_exception(None, None, RuntimeError("killed"))
+            assert not fused_lookup.fused_lookups()
+    finally:
+        fused_lookup.use_fused_lookups(False)
     grid, x = torch.randn(4, 4, 4, 1), points(8, torch.float32)
     assert not fused_in_graph(sample_grid(grid.requires_grad_(True), x, BOX))
 
