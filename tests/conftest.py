@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
 from filelock import FileLock
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
@@ -353,3 +354,19 @@ def tiny_ea_run(tmp_path_factory, tiny_dataset) -> tuple[Path, subprocess.Comple
             record.write_text(json.dumps([proc.args, proc.returncode, proc.stdout,
                                           proc.stderr]))
     return out, subprocess.CompletedProcess(*json.loads(record.read_text()))
+
+
+def computed_by(out: torch.Tensor, node: str) -> bool:
+    """Whether ``out``'s autograd graph holds a node whose name starts with ``node`` (the
+    fused kernels' ``FusedEncoding``, ``FusedLookup``): which path computed it."""
+    todo, seen = [out.grad_fn], set()
+    while todo:
+        fn = todo.pop()
+        if fn is None or fn in seen:
+            continue
+        seen.add(fn)
+        if fn.name().startswith(node):
+            return True
+        todo += [n for n, _ in fn.next_functions]
+    return False
+

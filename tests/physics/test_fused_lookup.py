@@ -20,6 +20,7 @@ from nrt.callbacks import FusedLookups
 from nrt.compile import LazyExtension
 from nrt.physics import fused_lookup
 from nrt.physics.volume import sample_grid
+from tests.conftest import computed_by
 
 pytestmark = pytest.mark.unit
 
@@ -73,17 +74,8 @@ def plain_and_fused(grid: torch.Tensor, x: torch.Tensor, grad: torch.Tensor,
 
 
 def fused_in_graph(out: torch.Tensor) -> bool:
-    """Whether the fused kernels computed ``out`` (its autograd graph holds their node)."""
-    todo, seen = [out.grad_fn], set()
-    while todo:
-        node = todo.pop()
-        if node is None or node in seen:
-            continue
-        seen.add(node)
-        if node.name().startswith("FusedLookup"):
-            return True
-        todo += [n for n, _ in node.next_functions]
-    return False
+    """Whether the fused kernels computed ``out``."""
+    return computed_by(out, "FusedLookup")
 
 
 @pytest.mark.parametrize(("shape", "n"), [((8, 8, 8, 4), 3000), ((5, 7, 9, 3), 3000),

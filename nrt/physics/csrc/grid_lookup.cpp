@@ -26,18 +26,30 @@ constexpr int64_t kMostParts = 8;           // backward: partial gradients at mo
 constexpr int64_t kMostPartValues = 1 << 24;  // backward: values of all partials at most
 
 template <typename scalar_t>
+struct Box {  // the box's low corner and extent per axis, in the points' dtype
+  scalar_t lo[3], extent[3];
+  explicit Box(const at::Tensor& bbox) {
+    const scalar_t* b = bbox.data_ptr<scalar_t>();
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = b[a];
+      extent[a] = b[3 + a] - b[a];
+    }
+  }
+};
+
+template <typename scalar_t>
 struct Corners {  // one point's 8 corners: flat cell index (-1: outside) and weight
   int64_t cell[8];
   scalar_t weight[8];
 };
 
 template <typename scalar_t>
-inline void locate(const scalar_t* p, const scalar_t* lo, const scalar_t* extent,
-                   const int64_t* size, Corners<scalar_t>& out) {
+inline void locate(const scalar_t* p, const Box<scalar_t>& box, const int64_t* size,
+                   Corners<scalar_t>& out) {
   int64_t base[3];
   scalar_t w[3][2];  // [axis][corner bit]: b + 1 - i, i - b
   for (int a = 0; a < 3; ++a) {
-    const scalar_t u = (p[a] - lo[a]) / extent[a] * scalar_t(2) - scalar_t(1);
+    const scalar_t u = (p[a] - box.lo[a]) / box.extent[a] * scalar_t(2) - scalar_t(1);
     const scalar_t n = static_cast<scalar_t>(size[a]);
     scalar_t i = ((u + scalar_t(1)) * n - scalar_t(1)) / scalar_t(2);
     i = std::min(static_cast<scalar_t>(size[a] - 1), std::max(i, scalar_t(0)));
@@ -84,14 +96,12 @@ at::Tensor forward(const at::Tensor& grid, const at::Tensor& points, const at::T
   AT_DISPATCH_FLOATING_TYPES(grid.scalar_type(), "grid_lookup_forward", [&] {
     const scalar_t* g = grid.data_ptr<scalar_t>();
     const scalar_t* pp = points.data_ptr<scalar_t>();
-    const scalar_t* bp = bbox.data_ptr<scalar_t>();
-    const scalar_t lo[3] = {bp[0], bp[1], bp[2]};
-    const scalar_t extent[3] = {bp[3] - bp[0], bp[4] - bp[1], bp[5] - bp[2]};
+    const Box<scalar_t> box(bbox);
     scalar_t* op = out.data_ptr<scalar_t>();
     at::parallel_for(0, n, kPointGrain, [&](int64_t begin, int64_t end) {
       Corners<scalar_t> k;
       for (int64_t p = begin; p < end; ++p) {
-        locate(pp + 3 * p, lo, extent, s.size, k);
+        locate(pp + 3 * p, box, s.size, k);
         scalar_t* o = op + p * c;
         for (int64_t ch = 0; ch < c; ++ch) o[ch] = scalar_t(0);
         for (int corner = 0; corner < 8; ++corner) {
@@ -134,9 +144,7 @@ at::Tensor backward(const at::Tensor& grad, const at::Tensor& points, const at::
   AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "grid_lookup_backward", [&] {
     const scalar_t* gp = grad.data_ptr<scalar_t>();
     const scalar_t* pp = points.data_ptr<scalar_t>();
-    const scalar_t* bp = bbox.data_ptr<scalar_t>();
-    const scalar_t lo[3] = {bp[0], bp[1], bp[2]};
-    const scalar_t extent[3] = {bp[3] - bp[0], bp[4] - bp[1], bp[5] - bp[2]};
+    const Box<scalar_t> box(bbox);
     scalar_t* out = partial.data_ptr<scalar_t>();
     at::parallel_for(0, parts, 1, [&](int64_t begin, int64_t end) {
       Corners<scalar_t> k;
@@ -144,7 +152,7 @@ at::Tensor backward(const at::Tensor& grad, const at::Tensor& points, const at::
         scalar_t* dst = out + part * cells * c;
         const int64_t first = n * part / parts, last = n * (part + 1) / parts;
         for (int64_t p = first; p < last; ++p) {
-          locate(pp + 3 * p, lo, extent, s.size, k);
+          locate(pp + 3 * p, box, s.size, k);
           const scalar_t* g = gp + p * c;
           for (int corner = 0; corner < 8; ++corner) {
             if (k.cell[corner] < 0) continue;

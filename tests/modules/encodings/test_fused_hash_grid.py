@@ -22,6 +22,7 @@ from nrt.compile import LazyExtension
 from nrt.modules.encodings import fused_hash_grid
 from nrt.modules.encodings.hash_grid import HashGrid
 from nrt.modules.fields.ea_field import EAField
+from tests.conftest import computed_by
 
 pytestmark = pytest.mark.unit
 
@@ -60,17 +61,8 @@ def points(n: int, dtype: torch.dtype) -> torch.Tensor:
 
 
 def fused_in_graph(out: torch.Tensor) -> bool:
-    """Whether the fused kernels computed ``out`` (its autograd graph holds their node)."""
-    todo, seen = [out.grad_fn], set()
-    while todo:
-        node = todo.pop()
-        if node is None or node in seen:
-            continue
-        seen.add(node)
-        if node.name().startswith("FusedEncoding"):
-            return True
-        todo += [n for n, _ in node.next_functions]
-    return False
+    """Whether the fused kernels computed ``out``."""
+    return computed_by(out, "FusedEncoding")
 
 
 def table_grad(grid: HashGrid, x: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
