@@ -207,11 +207,12 @@ class Render:
 
 @dataclass
 class SampleRender:
-    """How nrt-sample renders its media (``render``, conf/sample.yaml)."""
+    """How nrt-sample renders its media (``render``, conf/sample.yaml): the variant as
+    :class:`Render`'s, then its own counts."""
 
     what: ClassVar[str] = "the render settings"
     variant: str = MISSING
-    """Variant of Mitsuba: auto, llvm_ad_rgb, cuda_ad_rgb, scalar_rgb; NRT_MITSUBA_VARIANT wins."""
+    """Variant of Mitsuba, as nrt-train's ``render.variant``."""
     views: int | None = MISSING
     """Held-out cameras of the family per sky; null: all."""
     spp: int | None = MISSING
