@@ -216,7 +216,8 @@ def check_mode(cfg: DictConfig) -> None:
     """Refuse a mode that does not fit the scene or stage, and latent settings no run can
     use, before anything is built or loaded: ``mode=generative`` trains stages 1 and 2 on a scene
     family (``scene.family``), a family trains only in that mode, and ``mode.latent`` holds
-    counts >= 1, a non-negative ``init_std`` and ``prior_weight`` and a positive ``lr``."""
+    counts >= 1, a non-negative ``init_std`` and ``prior_weight``, a positive ``lr`` and a
+    boolean ``input``."""
     mode = OmegaConf.select(cfg, "mode.name", default="single")
     family = OmegaConf.select(cfg, "scene.family") is not None
     if mode not in ("single", "generative"):
@@ -262,6 +263,9 @@ def check_mode(cfg: DictConfig) -> None:
     if not _is_number(latent.get("lr")) or latent["lr"] <= 0:
         raise ConfigError(f"mode.latent.lr={latent.get('lr')}: a learning rate must be a "
                           "positive number.")
+    if not isinstance(latent.get("input", False), bool):
+        raise ConfigError(f"mode.latent.input={latent.get('input')}: must be true or false "
+                          "(whether stage 1's density MLP reads the code beside the features).")
 
 
 SINGLE_PROCESS_STAGES = ("dpt",)

@@ -150,6 +150,30 @@ def test_conditioned_field_with_a_fixed_code_is_a_valid_ea_field():
         plain.density(x, torch.zeros(4))
 
 
+def test_a_code_fed_to_the_density_mlp_starts_from_the_modulated_field():
+    """``latent_input``: z enters the density MLP beside the features through weights that
+    start at zero, so at the start every code gives the field without that input; once
+    those weights move, the density depends on z through them alone (the modulation kept
+    at zero), and the photo gradient reaches the code."""
+    grid = {"levels": 4, "log2_table_size": 12}
+    torch.manual_seed(3)
+    fed = EAField(hash_grid=grid, latent_dim=4, latent_input=True)
+    x = torch.rand(256, 3) * 2.4 - 1.2
+    start = fed.density(x, torch.zeros(4))
+    for z in (torch.randn(4), 100 * torch.randn(4)):
+        assert torch.equal(fed.density(x, z), start)
+    with torch.no_grad():
+        fed.density_net[0].weight[:, -4:].normal_(std=0.5)
+    z = torch.randn(4, requires_grad=True)
+    sigma = fed.density(x, z.expand(256, 4))
+    assert torch.isfinite(sigma).all() and (sigma >= 0).all()
+    assert not torch.equal(sigma, start)
+    sigma.sum().backward()
+    assert torch.isfinite(z.grad).all() and z.grad.abs().sum() > 0
+    with pytest.raises(ConfigError, match="latent_input=true"):
+        EAField(hash_grid=grid, latent_input=True)
+
+
 def test_single_mode_composes_the_single_scene_stage():
     cfg = compose_config("train", ["preset=tiny"])
     assert cfg.mode.name == "single" and cfg.model._target_ == "nrt.stages.ea.EAModule"
@@ -281,6 +305,7 @@ def test_stage_2_refuses_a_generative_checkpoint(short):
     ((*FAMILY, "mode.latent.modulation_hidden=2.5"), "mode.latent.modulation_hidden"),
     ((*FAMILY, "mode.latent.prior_weight=-1"), "mode.latent.prior_weight=-1"),
     ((*FAMILY, "mode.latent.lr=0"), "mode.latent.lr=0"),
+    ((*FAMILY, "mode.latent.input=3"), "mode.latent.input=3"),
     ((*FAMILY, "stage.environments=[0,1]"), "stage.environments=[0, 1]"),
 ])
 def test_bad_modes_are_refused_from_the_config(overrides, message):

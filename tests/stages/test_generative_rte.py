@@ -2,8 +2,9 @@
 init.ea_ckpt=<generative EA run>``) on a tiny family rendered for real, after a generative
 EA run: the stage composes and starts from the EA run's codes and densities, logs every
 member's property MSEs and their mean, exports valid grids per member and the codes,
-decodes a valid medium from any code, resumes its codes, and each member's own code
-reconstructs its own medium better than another member's; config mistakes end in
+decodes a valid medium from any code, resumes its codes, and at the preset each member's
+own code reconstructs its own medium better than the other codes do on average; config
+mistakes end in
 ``nrt: error:`` with status 2 before any data."""
 
 from __future__ import annotations
@@ -278,7 +279,7 @@ def cross_table(family: SceneFamily, gts: list[dict]) -> torch.Tensor:
 
 
 @pytest.mark.slow
-def test_each_code_reconstructs_its_own_member_best(trained):
+def test_each_members_own_code_beats_the_other_codes_on_average(trained):
     """Member i's medium decoded from every code j, scored against member i's ground truth.
 
     Measured at the preset (three runs; docs/generative.md): the own code was

@@ -7,7 +7,9 @@ it through :meth:`EAField.density`. Points are world coordinates inside ``bbox``
 A field built with ``latent_dim > 0`` is conditioned on a latent code z (the generative
 auto-decoder, ``mode=generative``): the hash-grid features are multiplied channel by channel
 by ``1 + M(z)``, ``M`` a small MLP (its output layer starts at zero, so every code starts
-from the same field). Such a field needs a code at every query; one without
+from the same field); with ``latent_input`` the density MLP also reads z beside the
+features (DeepSDF's conditioning; z's input weights start at zero, for the same reason).
+Such a field needs a code at every query; one without
 (``latent_dim = 0``, the default) refuses one and builds exactly the parameters it always
 had, in the same order, so single-scene runs draw the same random numbers.
 """
@@ -41,13 +43,22 @@ class EAField(nn.Module):
 
     def __init__(self, hash_grid: dict | None = None, hidden: int = 64, layers: int = 1,
                  geo_features: int = 15, density_activation: str = "trunc_exp",
-                 density_bias: float = -1.0, latent_dim: int = 0, modulation_hidden: int = 32):
+                 density_bias: float = -1.0, latent_dim: int = 0, modulation_hidden: int = 32,
+                 latent_input: bool = False):
         super().__init__()
         if density_activation not in DENSITY_ACTIVATIONS:
             raise ConfigError(f"model.density_field.density_activation must be one of "
                               f"{sorted(DENSITY_ACTIVATIONS)}, got '{density_activation}'.")
+        if latent_input and latent_dim <= 0:
+            raise ConfigError("model.density_field.latent_input=true feeds the latent code to "
+                              "the density MLP: it needs latent_dim > 0 (mode=generative).")
+        self.latent_input = bool(latent_input)
         self.encoding = HashGrid(**(hash_grid or {}))
-        self.density_net = mlp(self.encoding.output_dim, hidden, 1 + geo_features, layers)
+        n_in = self.encoding.output_dim + (int(latent_dim) if self.latent_input else 0)
+        self.density_net = mlp(n_in, hidden, 1 + geo_features, layers)
+        if self.latent_input:
+            with torch.no_grad():
+                self.density_net[0].weight[:, self.encoding.output_dim:] = 0.0
         self.color_net = mlp(geo_features + num_coefficients(SH_DEGREE), hidden, 3, layers)
         self.activation = DENSITY_ACTIVATIONS[density_activation]
         self.density_bias = density_bias
@@ -73,6 +84,9 @@ class EAField(nn.Module):
                                  f"{self.latent_dim}: pass latent (..., {self.latent_dim}) "
                                  "broadcastable against the points' leading dimensions.")
             encoded = encoded * (1.0 + self.modulation(latent))
+            if self.latent_input:
+                code = latent.to(encoded).expand(*encoded.shape[:-1], self.latent_dim)
+                encoded = torch.cat((encoded, code), -1)
         elif latent is not None:
             raise ValueError("this EA field has no latent code (latent_dim=0); build it with "
                              "latent_dim > 0 to condition it on one.")

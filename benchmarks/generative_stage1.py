@@ -1,0 +1,124 @@
+"""Generative stage 1's fit of every member of a family, its levers side by side.
+
+For each configuration (a name and its overrides, :data:`CONFIGS`) and seed,
+``nrt-train stage=ea mode=generative scene=family`` at the preset, through the CLI; each
+member's density correlation with its truth at the last validation
+(``val/density_corr_member<k>``), their mean and minimum, the held-out PSNR and the training
+seconds go to ``--table`` (CSV), one row per run. A run whose (config, preset, seed) row
+exists is skipped, so a killed benchmark continues; ``--summary`` prints the mean and spread
+per configuration from the table alone.
+
+    python -m benchmarks.generative_stage1 [--preset tiny] [--seeds 0,1,2]
+        [--configs default,latent_input] [--table docs/data/generative_stage1.csv] [--summary]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import statistics
+from pathlib import Path
+
+from benchmarks.common import metric_rows, output_dir, train
+
+ROOT = Path(__file__).resolve().parent.parent
+TABLE = ROOT / "docs" / "data" / "generative_stage1.csv"
+CONFIGS = {
+    "default": [],
+    "latent_input": ["mode.latent.input=true"],  # the density MLP reads z beside the features
+}
+"""The configurations measured, by name: their overrides of the generative defaults."""
+FIELDS = ("config", "preset", "seed", "corr_mean", "corr_min", "corr_members", "psnr",
+          "train_s", "overrides")
+
+
+def last_values(run: Path) -> dict[str, float]:
+    """Every metric's last logged value in a run's CSV log."""
+    last: dict[str, float] = {}
+    for row in metric_rows(run):
+        last.update({k: float(v) for k, v in row.items() if v not in ("", None)})
+    return last
+
+
+def run_row(run: Path, config: str, preset: str, seed: int) -> dict:
+    """The table's row of a finished generative stage-1 run."""
+    last = last_values(run)
+    members = [last[k] for k in sorted((k for k in last
+                                         if k.startswith("val/density_corr_member")),
+                                        key=lambda k: int(k.rsplit("member", 1)[1]))]
+    return {"config": config, "preset": preset, "seed": seed,
+            "corr_mean": f"{statistics.fmean(members):.4f}", "corr_min": f"{min(members):.4f}",
+            "corr_members": ";".join(f"{c:.4f}" for c in members),
+            "psnr": f"{last['val/psnr']:.3f}", "train_s": f"{last['time/wall_s']:.1f}",
+            "overrides": " ".join(CONFIGS[config])}
+
+
+def read_table(table: Path) -> list[dict]:
+    if not table.exists():
+        return []
+    with open(table) as f:
+        return list(csv.DictReader(f))
+
+
+def append_row(table: Path, row: dict) -> None:
+    new = not table.exists()
+    table.parent.mkdir(parents=True, exist_ok=True)
+    with open(table, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FIELDS)
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def summary(rows: list[dict]) -> str:
+    """Mean (sd) over seeds per configuration and preset: the members' mean correlation, the
+    worst member's, the held-out PSNR."""
+    lines = ["| config | preset | seeds | density corr, mean of members | worst member | "
+             "PSNR (dB) |", "|---|---|---:|---:|---:|---:|"]
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for row in rows:
+        groups.setdefault((row["config"], row["preset"]), []).append(row)
+
+    def spread(values: list[float]) -> str:
+        sd = statistics.stdev(values) if len(values) > 1 else 0.0
+        return f"{statistics.fmean(values):.3f} ± {sd:.3f}"
+
+    for (config, preset), group in groups.items():
+        lines.append(f"| {config} | {preset} | {len(group)} | "
+                     f"{spread([float(r['corr_mean']) for r in group])} | "
+                     f"{min(float(r['corr_min']) for r in group):.3f} | "
+                     f"{spread([float(r['psnr']) for r in group])} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--configs", default=",".join(CONFIGS))
+    parser.add_argument("--table", type=Path, default=TABLE)
+    parser.add_argument("--summary", action="store_true", help="print the table and stop")
+    args = parser.parse_args()
+    if args.summary:
+        print(summary(read_table(args.table)))
+        return
+    unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
+    if unknown:
+        parser.error(f"--configs: unknown configuration {unknown[0]!r}; the known ones are "
+                     f"{', '.join(CONFIGS)} (benchmarks/generative_stage1.py).")
+    done = {(r["config"], r["preset"], r["seed"]) for r in read_table(args.table)}
+    for seed in map(int, args.seeds.split(",")):
+        for config in args.configs.split(","):
+            if (config, args.preset, str(seed)) in done:
+                continue
+            run, _ = train("ea", output_dir(), args.preset,
+                           ["scene=family", "mode=generative", *CONFIGS[config],
+                            f"seed={seed}"], logger="[csv]")
+            row = run_row(run, config, args.preset, seed)
+            append_row(args.table, row)
+            print(f"{config} seed {seed}: density corr {row['corr_mean']} (worst "
+                  f"{row['corr_min']}), {row['psnr']} dB, {row['train_s']} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
