@@ -16,10 +16,13 @@ Gaussian of S cells of the truth's grid (:func:`gaussian_blur`): whether the fin
 a run keeps is error or the truth's (docs/stage2.md). ``--mean`` adds the row of the runs'
 extinctions averaged cell by cell (an ensemble, e.g. stage 2 under several seeds): how much
 of each run's error is its own run's noise. The dataset is the one the first run's
-``run.json`` names, or ``--dataset``.
+``run.json`` names, or ``--dataset``; or ``--scene NAME``, a benchmark scene whose ground
+truth is computed from its spec at ``--preset`` with nothing rendered (with ``--floor`` and
+no run: the floors alone, in seconds).
 
     python -m benchmarks.medium_error RUN [RUN ...] [--floor 32] [--blur 0.5] [--mean] [--by
         extinction|depth] [--bins 0.5,2,5] [--dataset outputs/datasets/<name>]
+    python -m benchmarks.medium_error --scene heldout3 --floor 16 --floor 32
 """
 
 from __future__ import annotations
@@ -31,8 +34,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
+from benchmarks.common import SCENES, compose_train
 from nrt.data.grids import load_property_grids, resample_grids
+from nrt.data.media import medium_grids
+from nrt.data.spec import resolve_scene
 from nrt.physics.volume import resample_cells
 
 BINS = {"extinction": "0.5,2,5", "depth": "1,3"}
@@ -43,6 +50,16 @@ def truth_grids(dataset: Path) -> dict[str, np.ndarray]:
     """The dataset's ground-truth property grids (and its ``bbox``) as float64 arrays."""
     grids = load_property_grids(dataset / "ground_truth.npz")
     return {k: np.asarray(v, dtype=np.float64) for k, v in grids.items()}
+
+
+def scene_truth(scene: str, preset: str) -> dict[str, np.ndarray]:
+    """The ground-truth grids (and ``bbox``) of the benchmark scene ``scene`` at ``preset``,
+    from its spec (what ``nrt-data`` would write into ``ground_truth.npz``), as float64."""
+    config = compose_train([f"preset={preset}", *SCENES[scene]]).scene
+    spec = resolve_scene(OmegaConf.to_container(config, resolve=True))
+    grids = medium_grids(spec)
+    return {**{k: np.asarray(v, dtype=np.float64) for k, v in grids.items()},
+            "bbox": np.asarray(spec["bbox"], dtype=np.float64)}
 
 
 def depth_from_outside(sigma_t: np.ndarray, cell: np.ndarray) -> np.ndarray:
@@ -121,8 +138,11 @@ def error_row(estimate: np.ndarray, truth: np.ndarray, edges: list[float],
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("runs", nargs="*", type=Path)
     parser.add_argument("--dataset", type=Path, default=None)
+    parser.add_argument("--scene", choices=sorted(SCENES), default=None,
+                        help="a benchmark scene: its ground truth from its spec, unrendered")
+    parser.add_argument("--preset", default="cpu", help="the preset of --scene")
     parser.add_argument("--floor", type=int, action="append", default=[],
                         help="grid resolution R: the truth resampled to R^3 and back")
     parser.add_argument("--blur", type=float, action="append", default=[],
@@ -135,10 +155,15 @@ def main() -> None:
     parser.add_argument("--bins", default=None,
                         help=f"inner bin edges (default {BINS})")
     args = parser.parse_args()
+    if not args.runs and args.scene is None:
+        parser.error("give run folders, or --scene NAME (with --floor R) for the floors alone")
     dataset = args.dataset
-    if dataset is None:
-        dataset = Path(json.loads((args.runs[0] / "run.json").read_text())["dataset_dir"])
-    truth = truth_grids(dataset)
+    if args.scene is not None:
+        truth, dataset = scene_truth(args.scene, args.preset), f"scene {args.scene}"
+    else:
+        if dataset is None:
+            dataset = Path(json.loads((args.runs[0] / "run.json").read_text())["dataset_dir"])
+        truth = truth_grids(dataset)
     # nrt writes the bbox with every ground truth; another tool's file gets the default box
     bbox = truth.pop("bbox", np.array([[-1.0] * 3, [1.0] * 3]))
     true_t = truth["sigma_a"] + truth["sigma_s"]

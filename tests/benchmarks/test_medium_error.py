@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.medium_error import depth_from_outside, error_row, gaussian_blur
+from benchmarks.medium_error import (
+    depth_from_outside,
+    error_row,
+    gaussian_blur,
+    scene_truth,
+    truth_grids,
+)
 from nrt.data.grids import save_property_grids
 from nrt.metrics import property_mse
 from tests.conftest import ROOT
@@ -101,3 +107,26 @@ def test_the_mean_row_averages_the_runs_cell_by_cell(tmp_path) -> None:
     expected = 100 * np.mean(np.float32(error) ** 2)
     assert all(abs(rows[run] - expected) < 2e-3 for run in runs)
     assert rows["mean of the 2 runs"] < 1e-3
+
+
+def test_a_scene_s_truth_from_its_spec_is_the_rendered_dataset_s(tiny_dataset) -> None:
+    """``--scene``: the grids computed from the spec, with nothing rendered, are those nrt-data
+    wrote beside the photos of the same scene and preset (float32 on disk)."""
+    from_spec = scene_truth("default", "tiny")
+    rendered = truth_grids(tiny_dataset)
+    assert from_spec.keys() == rendered.keys()
+    for name, grid in rendered.items():
+        assert np.array_equal(np.float32(from_spec[name]), np.float32(grid)), name
+
+
+def test_floors_of_a_scene_need_no_run(tmp_path) -> None:
+    """The truth on R^3 cells and back: a finer grid loses less (the default scene, tiny)."""
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.medium_error", "--scene", "default",
+                           "--preset", "tiny", "--floor", "8", "--floor", "16"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120, check=True)
+    floors = [float(line.split(" | ")[1]) for line in proc.stdout.splitlines()
+              if line.startswith("| truth on")]
+    assert len(floors) == 2 and floors[0] > floors[1] > 0
+    bare = subprocess.run([sys.executable, "-m", "benchmarks.medium_error"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert bare.returncode == 2 and "--scene NAME" in bare.stderr
