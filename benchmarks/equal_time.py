@@ -6,8 +6,8 @@ A record is two files beside each other: ``<name>.csv`` (property MSE x100 again
 training seconds, measured every ``every_s`` seconds with the clock paused) and
 ``<name>.json`` (nrt-eval's metrics of the end: the Mitsuba re-render of the held-out
 views under the held-back sky at the dataset's spp, LPIPS on, the noise floor beside; the
-steps and seconds; the commit of the nrt that trained it, whose configs hold the method's
-defaults). A record whose JSON exists is not run again, so a killed benchmark
+steps and seconds; the callers' tags, among them ``code``: the commit whose configs hold
+the method's defaults). A record whose JSON exists is not run again, so a killed benchmark
 resumes where it stopped.
 """
 
@@ -21,9 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import commit_of, metric_rows, run_cli, train
+from benchmarks.common import metric_rows, run_cli, train
 
-ROOT = Path(__file__).resolve().parent.parent
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 EVAL_KEYS = ("psnr_novel", "ssim_novel", "lpips_novel", "psnr_noise_floor_novel")
 MANY_STEPS = 1_000_000  # the budget stops the run
@@ -73,7 +72,7 @@ def run_method(path: Path, stage_overrides: list[str], scene_overrides: list[str
     metrics = evaluate(run, out)
     info = json.loads((run / "run.json").read_text())
     steps = max(int(float(r["step"])) for r in metric_rows(run) if r.get("step"))
-    record = {**tags, "budget_s": budget_s, "preset": preset, "commit": commit_of(ROOT),
+    record = {**tags, "budget_s": budget_s, "preset": preset,
               "seconds": info["final_metrics"]["time/wall_s"], "steps": steps + 1,
               "curve_points": points, "learns_g": "mse_g_x100" in metrics,
               "wall_s_with_eval": round(time.perf_counter() - start, 1),

@@ -36,7 +36,14 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import BLIND_SCENES, SCENES, add_budget_arguments, ea_checkpoint, output_dir
+from benchmarks.common import (
+    BLIND_SCENES,
+    SCENES,
+    add_budget_arguments,
+    commit_of,
+    ea_checkpoint,
+    output_dir,
+)
 from benchmarks.equal_time import (
     EVAL_KEYS,
     PROPERTIES,
@@ -73,6 +80,7 @@ def realisation_folder(photo_seed: int, variant: str = "auto") -> str:
 
 def run_all(args) -> None:
     methods = args.methods.split(",")
+    code = commit_of(ROOT)  # the commit whose configs hold each method's defaults
     for scene in args.scenes.split(","):
         for seed in map(int, args.photo_seeds.split(",")):
             name, overrides = scene_overrides(scene, seed, args.photo_variant)
@@ -91,7 +99,7 @@ def run_all(args) -> None:
                 record = run_method(folder / method, METHODS[method], overrides, ckpt,
                                     args.budget_s, args.every_s, args.preset, args.out,
                                     {"scene": scene, "photo_seed": seed, "method": method,
-                                     "photo_variant": args.photo_variant})
+                                     "photo_variant": args.photo_variant, "code": code})
                 print(summary_line(f"{label} {method}", record), flush=True)
 
 
