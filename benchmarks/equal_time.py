@@ -6,22 +6,28 @@ A record is two files beside each other: ``<name>.csv`` (property MSE x100 again
 training seconds, measured every ``every_s`` seconds with the clock paused) and
 ``<name>.json`` (nrt-eval's metrics of the end: the Mitsuba re-render of the held-out
 views under the held-back sky at the dataset's spp, LPIPS on, the noise floor beside; the
-steps and seconds; the callers' tags, among them ``code``: the commit whose configs hold
-the method's defaults). A record whose JSON exists is not run again, so a killed benchmark
-resumes where it stopped.
+steps and seconds; the EA checkpoint it started from, by path and the SHA-256 of its
+weights; the machine's speed just before and just after training
+(:func:`~benchmarks.machine_probe.machine_speed`), so records made hours apart can be
+checked for a change of speed; the callers' tags, among them ``code``: the commit whose
+configs hold the method's defaults). A record whose JSON exists is not run again, so a
+killed benchmark resumes where it stopped.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from benchmarks.common import metric_rows, run_cli, train
+from benchmarks.machine_probe import machine_speed
 
 PROPERTIES = ("sigma_a", "sigma_s", "sigma_t", "g")
 EVAL_KEYS = ("psnr_novel", "ssim_novel", "lpips_novel", "psnr_noise_floor_novel")
@@ -56,6 +62,19 @@ def evaluate(run: Path, out: Path) -> dict:
     return json.loads(latest.read_text())["metrics"]
 
 
+def weights_sha256(ckpt: Path) -> str:
+    """The SHA-256 (hex) of a Lightning checkpoint's weights: every tensor of its
+    ``state_dict`` with its name, in name order. Two checkpoints with the same weights agree
+    whatever else their files hold (times, loop counters)."""
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    digest = hashlib.sha256()
+    for name in sorted(state):
+        digest.update(name.encode())
+        digest.update(state[name].detach().contiguous().view(-1).view(torch.uint8).numpy()
+                      .tobytes())
+    return digest.hexdigest()
+
+
 def run_method(path: Path, stage_overrides: list[str], scene_overrides: list[str], ckpt: Path,
                budget_s: float, every_s: float, preset: str, out: Path, tags: dict) -> dict:
     """Train ``stage_overrides`` (``stage=...`` first) on the scene of ``scene_overrides``
@@ -64,9 +83,11 @@ def run_method(path: Path, stage_overrides: list[str], scene_overrides: list[str
     run folder under ``run``."""
     stage = stage_overrides[0].split("=")[1]
     start = time.perf_counter()
+    before = machine_speed()
     run, _ = train(stage, out, preset, [
         *stage_overrides[1:], *scene_overrides, f"init.ea_ckpt={ckpt}", f"budget_s={budget_s}",
         f"budget.{stage}.steps={MANY_STEPS}", f"callbacks.property_metrics.every_s={every_s}"])
+    after = machine_speed()
     path.parent.mkdir(parents=True, exist_ok=True)
     points = write_curve(run, path.with_suffix(".csv"))
     metrics = evaluate(run, out)
@@ -75,6 +96,8 @@ def run_method(path: Path, stage_overrides: list[str], scene_overrides: list[str
     record = {**tags, "budget_s": budget_s, "preset": preset,
               "seconds": info["final_metrics"]["time/wall_s"], "steps": steps + 1,
               "curve_points": points, "learns_g": "mse_g_x100" in metrics,
+              "ea_ckpt": {"path": str(ckpt), "weights_sha256": weights_sha256(ckpt)},
+              "machine": {"before": before, "after": after},
               "wall_s_with_eval": round(time.perf_counter() - start, 1),
               "metrics": {k: v for k, v in metrics.items()
                           if k.startswith(("mse_", *EVAL_KEYS))}}

@@ -19,7 +19,8 @@ run whose JSON exists is skipped, so a killed comparison resumes.
 ``redraw``: the figure (property MSE against training seconds, every scene and
 realisation, log time) and the Markdown table (mean and spread over realisations per scene
 and method; stage 2 against the baseline over the blind scenes and over all, as per-scene
-ratios; time-to-accuracy) from those files alone.
+ratios; time-to-accuracy; each realisation's commits, whether its methods started from the
+same EA weights and the machine's speed before each) from those files alone.
 
     python -m benchmarks.fair_comparison run [--scenes default,heldout,...] [--photo-seeds 0,1]
         [--photo-variant auto] [--methods rte,dpt,rte_paper] [--paper-on default]
@@ -81,26 +82,29 @@ def realisation_folder(photo_seed: int, variant: str = "auto") -> str:
 def run_all(args) -> None:
     methods = args.methods.split(",")
     code = commit_of(ROOT)  # the commit whose configs hold each method's defaults
-    for scene in args.scenes.split(","):
-        for seed in map(int, args.photo_seeds.split(",")):
-            name, overrides = scene_overrides(scene, seed, args.photo_variant)
-            label = f"{scene} {realisation_folder(seed, args.photo_variant)}"
-            folder = args.data / scene / realisation_folder(seed, args.photo_variant)
-            folder.mkdir(parents=True, exist_ok=True)
-            ckpt = None
-            for method in methods:
-                if method == "rte_paper" and scene not in args.paper_on.split(","):
-                    continue
-                result = folder / f"{method}.json"
-                if result.is_file():
-                    print(f"{label} {method}: done already", flush=True)
-                    continue
-                ckpt = ckpt or ea_checkpoint(name, args.preset, overrides)
-                record = run_method(folder / method, METHODS[method], overrides, ckpt,
-                                    args.budget_s, args.every_s, args.preset, args.out,
-                                    {"scene": scene, "photo_seed": seed, "method": method,
-                                     "photo_variant": args.photo_variant, "code": code})
-                print(summary_line(f"{label} {method}", record), flush=True)
+    realisations = [(scene, seed) for scene in args.scenes.split(",")
+                    for seed in map(int, args.photo_seeds.split(","))]
+    for index, (scene, seed) in enumerate(realisations):
+        name, overrides = scene_overrides(scene, seed, args.photo_variant)
+        label = f"{scene} {realisation_folder(seed, args.photo_variant)}"
+        folder = args.data / scene / realisation_folder(seed, args.photo_variant)
+        folder.mkdir(parents=True, exist_ok=True)
+        ckpt = None
+        # the order alternates between realisations: a drift of the machine's speed
+        # favours no method
+        for method in methods if index % 2 == 0 else methods[::-1]:
+            if method == "rte_paper" and scene not in args.paper_on.split(","):
+                continue
+            result = folder / f"{method}.json"
+            if result.is_file():
+                print(f"{label} {method}: done already", flush=True)
+                continue
+            ckpt = ckpt or ea_checkpoint(name, args.preset, overrides)
+            record = run_method(folder / method, METHODS[method], overrides, ckpt,
+                                args.budget_s, args.every_s, args.preset, args.out,
+                                {"scene": scene, "photo_seed": seed, "method": method,
+                                 "photo_variant": args.photo_variant, "code": code})
+            print(summary_line(f"{label} {method}", record), flush=True)
 
 
 # ------------------------------------------------------------------------- redraw
@@ -183,6 +187,25 @@ def over_scenes(results: dict) -> list[str]:
     return lines
 
 
+def provenance(results: dict) -> list[str]:
+    """Markdown lines: per realisation, the commits its records ran at, whether its methods
+    started from the same EA weights (by their SHA-256; "not recorded" for records that
+    predate it) and the machine's GEMM probe before each method's training (GFLOP/s)."""
+    by: dict[tuple[str, str], dict[str, dict]] = {}
+    for (scene, photos, method), rec in sorted(results.items()):
+        by.setdefault((scene, photos), {})[method] = rec
+    lines = ["| scene | photos | code | same EA weights | GEMM probe GFLOP/s before |",
+             "|---|---|---|---|---|"]
+    for (scene, photos), recs in by.items():
+        codes = sorted({str(r.get("code", r.get("commit", "not recorded"))) for r in recs.values()})
+        hashes = {r.get("ea_ckpt", {}).get("weights_sha256") for r in recs.values()}
+        same = "not recorded" if None in hashes else ("yes" if len(hashes) == 1 else "NO")
+        speed = ", ".join(f"{m} {r['machine']['before']['gemm_gflops']:.0f}"
+                          for m, r in recs.items() if "machine" in r) or "not recorded"
+        lines.append(f"| {scene} | {photos} | {', '.join(codes)} | {same} | {speed} |")
+    return lines
+
+
 def table(results: dict) -> str:
     """Markdown: per scene and method, the start's sigma_t and the end's property MSE x100
     and re-render metrics, mean and sample sd over photo realisations; then stage 2's and
@@ -214,6 +237,7 @@ def table(results: dict) -> str:
             t = seconds_to_reach(own["curve"], "sigma_t", other["metrics"]["mse_sigma_t_x100"])
             cells.append(f"never (> {own['seconds']:.0f})" if math.isnan(t) else f"{t:.0f}")
         lines.append(f"| {scene} | {photos} | {cells[0]} | {cells[1]} | {rte['budget_s']:.0f} |")
+    lines += ["", *provenance(results)]
     return "\n".join(lines) + "\n"
 
 

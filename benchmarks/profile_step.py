@@ -88,6 +88,7 @@ from omegaconf import OmegaConf  # noqa: E402
 from torch.profiler import ProfilerActivity, record_function  # noqa: E402
 
 from benchmarks.common import SCENES, compose_train, ea_checkpoint  # noqa: E402
+from benchmarks.machine_probe import DEFAULT_GEMM, bandwidth_probe, gemm_probe  # noqa: E402
 from nrt.cli.common import tune_allocator  # noqa: E402
 from nrt.stages.schedules import RunClock  # noqa: E402
 
@@ -459,36 +460,6 @@ def step_costs(events: list) -> dict[str, float]:
             visit(event)
     total["gemm_shape"] = list(max(shapes, key=shapes.get)) if shapes else None
     return total
-
-
-DEFAULT_GEMM = (8192, 64, 64)
-"""The GEMM probe's (M, K, N) for a step whose matrix products hold under 10 % of its FLOPs
-(stage 2's default, dpt): an MLP layer of 64 units over 8192 points."""
-
-
-def gemm_probe(shape: tuple[int, int, int], seconds: float) -> float:
-    """GFLOP/s of a float32 ``(M, K) @ (K, N)`` product repeated for ``seconds``."""
-    m, k, n = shape
-    a, b, c = torch.randn(m, k), torch.randn(k, n), torch.empty(m, n)
-    torch.mm(a, b, out=c)
-    calls, start = 0, time.perf_counter()
-    while (elapsed := time.perf_counter() - start) < seconds or calls == 0:
-        for _ in range(10):
-            torch.mm(a, b, out=c)
-        calls += 10
-    return 2.0 * m * k * n * calls / elapsed / 1e9
-
-
-def bandwidth_probe(seconds: float, numel: int = 2**25) -> float:
-    """GB/s of ``c = a + b`` over float32 tensors of ``numel`` elements (128 MiB each),
-    counting the bytes read and written, repeated for ``seconds``."""
-    a, b, c = torch.rand(numel), torch.rand(numel), torch.empty(numel)
-    torch.add(a, b, out=c)
-    calls, start = 0, time.perf_counter()
-    while (elapsed := time.perf_counter() - start) < seconds or calls == 0:
-        torch.add(a, b, out=c)
-        calls += 1
-    return 3.0 * 4 * numel * calls / elapsed / 1e9
 
 
 def roofline(events: list, steps: int, step_s: float, probe_s: float) -> dict:

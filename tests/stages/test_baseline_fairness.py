@@ -187,7 +187,8 @@ def test_figures_of_several_stages_leave_out_each_stages_own_renderer():
     assert "val/psnr" not in drawn_metrics(mixed) and "eval/psnr_novel" in drawn_metrics(mixed)
 
 
-def _record(folder: Path, method: str, times, sigma_t, end_psnr: float) -> None:
+def _record(folder: Path, method: str, times, sigma_t, end_psnr: float,
+            provenance: dict | None = None) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     rows = ["wall_s,sigma_a,sigma_s,sigma_t,g"]
     rows += [f"{t},1.0,2.0,{v},0.5" for t, v in zip(times, sigma_t, strict=True)]
@@ -200,7 +201,13 @@ def _record(folder: Path, method: str, times, sigma_t, end_psnr: float) -> None:
         "scene": folder.parent.name, "photo_seed": int(seed), "method": method,
         "photo_variant": variant or "auto", "budget_s": 40.0,
         "preset": "tiny", "seconds": times[-1], "steps": 100, "curve_points": len(times),
-        "learns_g": True, "metrics": metrics}))
+        "learns_g": True, "metrics": metrics, **(provenance or {})}))
+
+
+def _provenance(weights: str, gflops: float) -> dict:
+    speed = {"gemm_gflops": gflops, "bandwidth_gbs": 10.0}
+    return {"code": "abc1234", "ea_ckpt": {"path": "x", "weights_sha256": weights},
+            "machine": {"before": speed, "after": speed}}
 
 
 def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
@@ -217,8 +224,14 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
                 [9.0, 8.0, 7.0, 6.5, 6.0], 34.0)
     _record(data / "heldout" / "photo0", "rte", times, [9.0, 5.0, 3.0, 2.5, 2.0], 35.0)
     _record(data / "heldout" / "photo0", "dpt", times, [9.0, 7.0, 5.0, 4.5, 4.0], 34.0)
-    _record(data / "heldout2" / "photo0", "rte", times, [9.0, 8.0, 7.0, 6.0, 5.0], 33.0)
-    _record(data / "heldout2" / "photo0", "dpt", times, [9.0, 4.0, 3.5, 3.2, 3.0], 34.0)
+    _record(data / "heldout2" / "photo0", "rte", times, [9.0, 8.0, 7.0, 6.0, 5.0], 33.0,
+            _provenance("aa", 51.0))
+    _record(data / "heldout2" / "photo0", "dpt", times, [9.0, 4.0, 3.5, 3.2, 3.0], 34.0,
+            _provenance("aa", 49.0))
+    _record(data / "heldout2" / "photo1", "rte", times, [9.0, 8.0, 7.0, 6.0, 5.0], 33.0,
+            _provenance("aa", 50.0))
+    _record(data / "heldout2" / "photo1", "dpt", times, [9.0, 4.0, 3.5, 3.2, 3.0], 34.0,
+            _provenance("bb", 50.0))
     figure, table = tmp_path / "fig.png", tmp_path / "table.md"
     proc = subprocess.run([sys.executable, "-m", "benchmarks.fair_comparison", "redraw",
                            "--data", str(data), "--figure", str(figure), "--table", str(table)],
@@ -243,6 +256,10 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     assert "| 0.66x (0.35-1.67), 2/3 |" in every, every
     assert "+0.50 dB (-1.00 to +1.50), 2/3" in every, every
     assert "| 1.00x (1.00-1.00), 0/3 |" in every  # equal errors: not better
+    # provenance: the commits, whether both started from one EA's weights, the machine's speed
+    assert "| heldout2 | photo0 | abc1234 | yes | dpt 49, rte 51 |" in text
+    assert "| heldout2 | photo1 | abc1234 | NO | dpt 50, rte 50 |" in text
+    assert "| heldout | photo0 | not recorded | not recorded | not recorded |" in text
 
 
 def test_a_realisation_of_the_scalar_variant_is_a_scene_of_its_own():
