@@ -81,6 +81,63 @@ def test_each_rank_draws_its_own_rays_and_rank_0_those_of_one_process():
     torch.testing.assert_close(first_batch(1)["dirs"], ranks[1]["dirs"], rtol=0, atol=0)
 
 
+def family_views(members: int = 5, frames: int = 3) -> tuple[SceneDataset, torch.Tensor]:
+    """``frames`` photos of each of ``members`` members (the same camera rig), and the
+    member of each photo."""
+    one = views()
+    n = members * frames
+    data = SceneDataset(root=Path("family"), split="train",
+                        images=torch.rand(n, 8, 8, 3, generator=torch.Generator().manual_seed(1)),
+                        c2w=one.c2w[torch.arange(n) % 2], intrinsics=one.intrinsics,
+                        env_index=torch.zeros(n, dtype=torch.long), env_names=["sky"],
+                        envmaps=one.envmaps, bbox=one.bbox, ground_truth=None, spec=None)
+    return data, torch.arange(members).repeat_interleave(frames)
+
+
+def test_a_step_of_some_members_draws_the_same_members_on_every_rank():
+    """With ``members_per_step`` each batch names M distinct members, sorted, and draws every
+    ray from their photos, about evenly; the members follow the run's seed on every rank
+    (their rays do not), change from step to step, and a resumed pass draws the same."""
+    data, members = family_views()
+
+    def batches(seed: int, skip: int = 0) -> list[dict]:
+        rays = RandomRays(data, 600, 6, seed, members, members_per_step=2, member_seed=3)
+        rays.resume_at(0, skip)
+        return list(rays)
+
+    ours, other_rank = batches(3), batches(rank_seed(3, 1))
+    steps = [tuple(b["step_members"].tolist()) for b in ours]
+    assert all(len(set(s)) == 2 and list(s) == sorted(s) for s in steps)
+    assert len(set(steps)) > 1  # the members change from step to step
+    for batch in ours:
+        chosen = batch["step_members"]
+        assert torch.isin(batch["member"], chosen).all()
+        assert torch.equal(batch["member"].unique(), chosen)
+        counts = torch.stack([(batch["member"] == k).sum() for k in chosen])
+        assert (counts - 300).abs().max() < 5 * 300 ** 0.5 / 2  # binomial(600, 1/2): 5 sd
+        img_of = (batch["rgb"][:, None, :] == data.images.reshape(1, -1, 3)).all(-1)
+        assert img_of.any(-1).all()  # each ray's colour is a pixel of a photo
+    assert [tuple(b["step_members"].tolist()) for b in other_rank] == steps
+    assert not torch.equal(other_rank[0]["dirs"], ours[0]["dirs"])  # ranks' own rays
+    for a, b in zip(batches(3, skip=4), ours[4:], strict=True):
+        for key in a:
+            assert torch.equal(a[key], b[key]), key
+
+
+def test_without_members_per_step_the_batches_are_unchanged():
+    """The default draws as a single scene does (the same numbers from the same seed), with
+    each ray's member and no ``step_members``."""
+    data, members = family_views()
+    plain = next(iter(RandomRays(data, 64, 1, 3)))
+    family = next(iter(RandomRays(data, 64, 1, 3, members)))
+    assert "step_members" not in family
+    for key, value in plain.items():
+        assert torch.equal(family[key], value), key
+    assert torch.equal(family["member"], members[(family["rgb"][:, None, :] ==
+                                                   data.images.reshape(1, -1, 3)).all(-1)
+                                                  .nonzero()[:, 1] // 64])
+
+
 def test_metrics_are_means_over_the_ranks_but_clocks_and_memory():
     assert synced("train/loss") and synced("val/psnr") and synced("guard/nonfinite_grads")
     assert not synced("time/wall_s") and not synced("time/step_photo_s")

@@ -27,7 +27,7 @@ from nrt.cameras import camera_rays
 from nrt.data.dataset import SceneDataset, load_dataset
 from nrt.data.family import Family, load_family
 from nrt.distributed import rank_seed
-from nrt.errors import DatasetError
+from nrt.errors import ConfigError, DatasetError
 from nrt.physics.envmap import EnvironmentMap
 
 
@@ -46,14 +46,39 @@ class RandomRays(IterableDataset):
     """``steps`` batches of ``batch_size`` rays drawn uniformly over all pixels of all
     training images, each jittered uniformly inside its pixel (box-filter pixels).
     ``members`` (N,): the family member of each image; batches then carry ``member``.
-    ``twins``: how many of a batch's first rays get a twin through the same pixel, its
-    jitter drawn from a generator of its own, so the batches' rays do not depend on it."""
+    ``members_per_step`` M (with ``members``): each batch draws M of the K members first
+    (from a generator of ``member_seed``, the same on every rank), then each ray a member
+    among them uniformly, an image of it and a pixel; the batch carries them sorted as
+    ``step_members`` (M,). ``twins``: how many of a batch's first rays get a twin through
+    the same pixel, its jitter drawn from a generator of its own, so the batches' rays do
+    not depend on it."""
 
     def __init__(self, data: SceneDataset, batch_size: int, steps: int, seed: int,
-                 members: torch.Tensor | None = None, twins: int = 0):
+                 members: torch.Tensor | None = None, twins: int = 0,
+                 members_per_step: int | None = None, member_seed: int = 0):
         self.data, self.batch_size, self.steps, self.seed = data, batch_size, steps, seed
         self.members, self.twins = members, max(0, min(int(twins), batch_size))
         self.epoch, self.skip = 0, 0
+        self.frames = None  # (K, F): the images of each member, when a step draws members
+        if members is not None and members_per_step:
+            self.frames = torch.stack([torch.nonzero(members == k).flatten()
+                                       for k in range(int(members.max()) + 1)])
+            self.members_per_step, self.member_seed = int(members_per_step), member_seed
+
+    def draw(self, g: torch.Generator, g_members: torch.Generator | None
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """One batch's images and pixels (flat in the image), and its members (None when
+        every member may appear)."""
+        n, h, w = self.data.images.shape[:3]
+        if self.frames is None:
+            flat = torch.randint(0, n * h * w, (self.batch_size,), generator=g)
+            return flat // (h * w), flat % (h * w), None
+        k, f = self.frames.shape
+        step = torch.randperm(k, generator=g_members)[:self.members_per_step].sort().values
+        slot = torch.randint(0, len(step), (self.batch_size,), generator=g)
+        frame = torch.randint(0, f, (self.batch_size,), generator=g)
+        pix = torch.randint(0, h * w, (self.batch_size,), generator=g)
+        return self.frames[step[slot], frame], pix, step
 
     def resume_at(self, epoch: int, batches_done: int) -> None:
         """Continue a resumed run in ``epoch`` after its first ``batches_done`` batches: the
@@ -64,17 +89,18 @@ class RandomRays(IterableDataset):
     def __iter__(self):
         g = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
         g_twin = torch.Generator().manual_seed((self.seed * 1_000_003 + self.epoch) ^ (1 << 40))
+        g_members = None if self.frames is None else torch.Generator().manual_seed(
+            (self.member_seed * 1_000_003 + self.epoch) ^ (1 << 41))
         self.epoch += 1
         skip, self.skip = self.skip, 0
-        n, h, w = self.data.images.shape[:3]
+        w = self.data.images.shape[2]
         for i in range(self.steps):
-            flat = torch.randint(0, n * h * w, (self.batch_size,), generator=g)
+            img, pix, step = self.draw(g, g_members)
             jitter = torch.rand(self.batch_size, 2, generator=g)
             if i < skip:  # drawn and dropped: the generators stay on the run's course
                 if self.twins:
                     torch.rand(self.twins, 2, generator=g_twin)
                 continue
-            img, pix = flat // (h * w), flat % (h * w)
             row, col = pix // w, pix % w
             o, d = camera_rays(self.data.c2w[img], self.data.intrinsics,
                                col + jitter[:, 0], row + jitter[:, 1])
@@ -83,6 +109,8 @@ class RandomRays(IterableDataset):
                      "background": environment_radiance(self.data, env, d), "env": env}
             if self.members is not None:
                 batch["member"] = self.members[img]
+            if step is not None:
+                batch["step_members"] = step
             if self.twins:
                 k = self.twins
                 jitter = torch.rand(k, 2, generator=g_twin)
@@ -149,6 +177,7 @@ class RayDataModule(L.LightningDataModule):
         self.val_data: SceneDataset | None = None
         self.train_members: torch.Tensor | None = None  # a family's member of each frame
         self.val_members: torch.Tensor | None = None
+        self.members_per_step: int | None = None  # a family's members a step draws from
 
     def setup(self, stage: str | None = None) -> None:
         if self.train_data is None:
@@ -190,7 +219,8 @@ class RayDataModule(L.LightningDataModule):
         trainer = self.trainer
         rank = trainer.global_rank if trainer is not None else 0
         rays = RandomRays(self.train_data, self.batch_size, self.steps_per_epoch,
-                          rank_seed(self.seed, rank), self.train_members, self.twins)
+                          rank_seed(self.seed, rank), self.train_members, self.twins,
+                          self.members_per_step, self.seed)
         if trainer is not None and trainer.global_step:
             epoch = trainer.current_epoch
             rays.resume_at(epoch, trainer.global_step - epoch * self.steps_per_epoch)
@@ -237,13 +267,21 @@ class FamilyRayDataModule(RayDataModule):
 
     Training batches are drawn uniformly over all members' training pixels, so each mixes
     members, and carry each ray's ``member``; validation renders ``val_views`` held-out
-    views of each member. ``dataset_dir`` is the family folder (``family.json``);
-    ``environments`` (names or positions) may name only the training environment
-    (``stage.environments: [0]`` in ``conf/mode/generative.yaml``; null: the same); the
-    other arguments are :class:`RayDataModule`'s."""
+    views of each member. With ``members_per_step`` M (null: all K), each training batch
+    draws its rays from M of the members only (:class:`RandomRays`), so that a step of
+    generative stage 2 decodes M members' media and lights, not K. ``dataset_dir`` is the
+    family folder (``family.json``); ``environments`` (names or positions) may name only
+    the training environment (``stage.environments: [0]`` in ``conf/mode/generative.yaml``;
+    null: the same); the other arguments are :class:`RayDataModule`'s."""
 
-    def __init__(self, dataset_dir: str, **kwargs):
+    def __init__(self, dataset_dir: str, members_per_step: int | None = None, **kwargs):
         super().__init__(dataset_dir, **kwargs)
+        if members_per_step is not None and (isinstance(members_per_step, bool) or
+                                             not isinstance(members_per_step, int) or
+                                             members_per_step < 1):
+            raise ConfigError(f"data.members_per_step={members_per_step}: a whole number of "
+                              "members >= 1, or null for all of them.")
+        self.members_per_step = members_per_step
         self.family: Family | None = None
         self.member_ground_truths: list[dict[str, torch.Tensor] | None] = []
 
@@ -274,6 +312,13 @@ class FamilyRayDataModule(RayDataModule):
                 self.member_ground_truths = [data.ground_truth for data in members]
         self.train_data, self.train_members = splits["train"]
         self.val_data, self.val_members = splits["test"]
+        counts = torch.bincount(self.train_members).tolist()
+        if self.members_per_step is not None and (self.members_per_step > len(counts) or
+                                                  len(set(counts)) > 1):
+            raise DatasetError(
+                f"Family '{self.dataset_dir}': data.members_per_step={self.members_per_step} "
+                f"needs at most its {len(counts)} members, each with as many training images "
+                f"(they have {counts}); lower it, or set it to null.")
 
     @property
     def environment(self) -> EnvironmentMap:

@@ -25,6 +25,11 @@ latent code (the auto-decoder of :mod:`nrt.stages.generative_ea`, continued).
   trains the light field, which reads the codes without gradient, at collocation points
   that each carry a member index (split evenly over the members). Each objective is the
   mean over all rays or points of the family.
+- **Members a step.** By default a step's rays mix all K members, and the step decodes K
+  media and lights. With ``data.members_per_step=M`` each step draws M members (the same on
+  every rank) and its rays, collocation points, priors and uncollided refreshes concern
+  those M only: a step decodes M, each member's uncollided light is refreshed every
+  ``uncollided_every`` of its own steps, and a code absent from a step gets no prior step.
 
 Validation scores each member's held-out views (``val/psnr_member<k>``, by
 :class:`~nrt.callbacks.HeldOutImageMetrics`) and its medium against its own ground truth
@@ -41,6 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import ConfigError, DatasetError
@@ -109,6 +115,10 @@ class SceneFamily(nn.Module):
         self.member_info = member_info
         self.ea = field.requires_grad_(False)
         self._encoding: torch.Tensor | None = None
+        self._decoded: list[tuple[Any, Any]] = []  # the step's media: (decoded, leaf)
+        self._step: tuple[torch.Tensor, torch.Tensor] | None = None  # members, their steps
+        # how many steps drew each member (batches of some members: data.members_per_step)
+        self.register_buffer("member_steps", torch.zeros(members, dtype=torch.long))
         self._ground_truths: list[dict[str, torch.Tensor] | None] = []
         self.codes = nn.Parameter(codes.clone())
 
@@ -150,7 +160,10 @@ class SceneFamily(nn.Module):
         self._encoding = None  # at the box the datamodule set
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Nothing to do: the codes and the EA field come with the state."""
+        """The codes and the EA field come with the state; a checkpoint written before
+        :attr:`member_steps` was kept starts it at zero."""
+        checkpoint["state_dict"].setdefault("scenes.member_steps", torch.zeros_like(
+            self.member_steps))
 
     def settings(self) -> dict:
         """The EA run's field config and the members, which rebuild the family."""
@@ -174,8 +187,9 @@ class SceneFamily(nn.Module):
 
     def member_medium(self, member: int):
         """Member ``member``'s medium: voxels, differentiable in the decoder and the code."""
-        code = self.codes[member]
-        return self.medium.voxels_for(self.density_for(code), code)
+        with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
+            code = self.codes[member]
+            return self.medium.voxels_for(self.density_for(code), code)
 
     def member_scene(self, member: int) -> tuple[Any, Any]:
         """Member ``member``'s medium (:meth:`member_medium`) and light (the code without
@@ -184,27 +198,80 @@ class SceneFamily(nn.Module):
                 self.light.member(member, self.codes[member].detach()))
 
     # ------------------------------------------------------------- the pairs
-    def pairs(self) -> list[tuple[Any, Any]]:
-        """Every member's (medium, light), in the order of ``codes``' rows."""
-        return [self.member_scene(k) for k in range(self.codes.shape[0])]
+    def pairs(self, batch: dict) -> list[tuple[Any, Any]]:
+        """The (medium, light) of each member of a training step: every member in the order
+        of ``codes``' rows, or the batch's ``step_members`` (M,) when batches draw some
+        members (``data.members_per_step``; counted in :attr:`member_steps`). Each medium
+        is decoded once and handed out as leaves
+        (:meth:`~nrt.modules.fields.voxel_medium.Voxels.as_leaf`): every objective of the
+        step reads the same values (the priors too, :meth:`fresh_voxels`), and
+        :meth:`backward_media` carries what they left on them into the decoders and codes
+        in one backward, instead of one decode and one backward per objective."""
+        step = batch.get("step_members")
+        self._step = None if step is None else (step, self.member_steps[step].clone())
+        if step is not None:
+            self.member_steps[step] += 1
+        self._decoded = []
+        pairs = []
+        for k in range(self.codes.shape[0]) if step is None else step.tolist():
+            decoded = self.member_medium(k)
+            leaf = decoded.as_leaf()
+            self._decoded.append((decoded, leaf))
+            with record_function("nrt/light_field"):
+                pairs.append((leaf, self.light.member(k, self.codes[k].detach())))
+        return pairs
 
     def scene_of(self, batch: dict) -> torch.Tensor:
-        """Each ray's member (``member``)."""
-        return batch["member"]
+        """Each ray's position in :meth:`pairs`: its ``member``, or the member's place in
+        the batch's ``step_members``."""
+        step = batch.get("step_members")
+        if step is None:
+            return batch["member"]
+        place = torch.full((self.codes.shape[0],), -1, dtype=torch.long, device=step.device)
+        place[step] = torch.arange(len(step), device=step.device)
+        return place[batch["member"]]
+
+    def uncollided_due(self, cache, step: int) -> list[tuple[int, bool]]:
+        """With every member a step, all of them on the cache's schedule; with some members
+        a step, each member's light every ``uncollided_every`` of its own steps, the first
+        of them included (its first refresh)."""
+        if self._step is None:
+            if not cache.due(step):
+                return []
+            return [(i, not cache.fresh) for i in range(self.codes.shape[0])]
+        return [(i, n == 0) for i, n in enumerate(self._step[1].tolist())
+                if n % cache.every == 0]
 
     def view_pair(self, batch: dict) -> tuple[Any, Any]:
         """The view's member's medium and light (``member``)."""
         return self.member_scene(int(batch["member"]))
 
     def fresh_voxels(self) -> list:
-        """Every member's medium composed anew; their lights are not decoded."""
+        """Every member's medium as the step's objectives read it (the leaves of
+        :meth:`pairs`); decoded anew outside a step."""
+        if self._decoded:
+            return [leaf for _, leaf in self._decoded]
         return [self.member_medium(k) for k in range(self.codes.shape[0])]
+
+    def backward_media(self, backward) -> None:
+        """Carry the gradients the step's objectives left on its media (:meth:`pairs`)
+        through their decoders into the decoder and the codes, by ``backward`` (the stage's
+        ``manual_backward``) of one scalar; nothing when no objective read them."""
+        with record_function("nrt/medium"):
+            terms = [t for decoded, leaf in self._decoded
+                     if (t := decoded.carried_back(leaf)) is not None]
+            self._decoded = []
+            if terms:
+                backward(torch.stack(terms).sum())
 
     # --------------------------------------------------------------- training
     def priors(self) -> dict[str, torch.Tensor]:
         """``latent_prior``: ``latent_prior_weight * mean_k |z_k|^2``, the codes' Gaussian
-        prior, beside their data term (the photos)."""
-        return {"latent_prior": self.latent_prior_weight * self.codes.square().sum(-1).mean()}
+        prior, beside their data term (the photos), over the step's members: a code the
+        photos do not see this step gets no prior step either (alone, Adam would scale the
+        prior's tiny gradient up to steps of ``latent_lr`` toward the origin)."""
+        codes = self.codes if self._step is None else self.codes[self._step[0]]
+        return {"latent_prior": self.latent_prior_weight * codes.square().sum(-1).mean()}
 
     def step_metrics(self) -> dict[str, torch.Tensor]:
         """``latent_norm``: the codes' mean norm."""

@@ -232,19 +232,24 @@ class RTEStage(RadiativeTransferStage):
 
     def refresh_uncollided(self, scenes) -> None:
         """Refresh the uncollided cache of the light of each (medium, light) pair of
-        ``scenes`` in its medium (without gradient) when it is due
-        (:class:`~nrt.stages.uncollided.UncollidedCache`), logging the seconds."""
+        ``scenes`` in its medium (without gradient) that the scene source says is due
+        (``uncollided_due``, on :class:`~nrt.stages.uncollided.UncollidedCache`'s
+        schedule), logging the seconds."""
         start = time.perf_counter()
         with record_function("nrt/uncollided"):  # a profiler scope (benchmarks.profile_step)
-            if self.uncollided.due(self.global_step):
-                self.uncollided.refresh_all(scenes, self.sky_lights.illumination_of)
+            due = self.scenes.uncollided_due(self.uncollided, self.global_step)
+            for first in (True, False):
+                group = [scenes[i] for i, new in due if new == first]
+                if group:
+                    self.uncollided.refresh_all(group, self.sky_lights.illumination_of, first)
+            if due:
                 self.uncollided.fresh = True
         self.log("time/step_uncollided_s", time.perf_counter() - start)
 
     def training_step(self, batch: dict, batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         self._update_resolution()
-        scenes = self.scenes.pairs()
+        scenes = self.scenes.pairs(batch)
         self.refresh_uncollided(scenes)
         opt.zero_grad(set_to_none=True)
         scene = self.scenes.scene_of(batch)
@@ -252,6 +257,7 @@ class RTEStage(RadiativeTransferStage):
             batch = {**batch, "scene": scene}
         total = self.backward_priors(self.backward_objectives(batch,
                                                               self.step_context(scenes)))
+        self.scenes.backward_media(self.manual_backward)
         grad = self.adjoint.take_gradient() if self.adjoint is not None else None
         if grad is not None:  # one environment, one pair (setup refuses more)
             self.adjoint_step(scenes[0][0], grad)

@@ -16,6 +16,7 @@ forward mode); lights are scattered-light fields (:mod:`nrt.modules.fields.proto
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
@@ -24,6 +25,7 @@ import torch
 from nrt.errors import ConfigError
 from nrt.stages.components import as_factory
 from nrt.stages.single_scene import SingleScene
+from nrt.stages.uncollided import UncollidedCache
 
 
 class SceneSource(Protocol):
@@ -38,19 +40,31 @@ class SceneSource(Protocol):
     FITS: ClassVar[str]
     """Which light fields and media fit, for the stage's refusal of one that does not."""
 
-    def pairs(self) -> list[tuple[Any, Any]]:
-        """The step's (medium, light) pairs, with gradient to what they are made of."""
+    def pairs(self, batch: dict) -> list[tuple[Any, Any]]:
+        """The (medium, light) pairs of a training step on the ray ``batch``, with gradient
+        to what they are made of; called once a step, first."""
 
     def scene_of(self, batch: dict) -> torch.Tensor | None:
         """Each ray's pair (B,), an index into :meth:`pairs`; None where there is one pair."""
+
+    def uncollided_due(self, cache: UncollidedCache, step: int) -> list[tuple[int, bool]]:
+        """The step's pairs (positions in :meth:`pairs`) whose light's uncollided cache is
+        refreshed at ``step``, each with whether it is its first refresh (replaced, not
+        blended); ``cache`` keeps the schedule."""
 
     def view_pair(self, batch: dict) -> tuple[Any, Any]:
         """The (medium, light) pair that renders a held-out view (``batch``: ``env``, and a
         family's ``member``)."""
 
     def fresh_voxels(self) -> list:
-        """The learned media composed anew (a graph of their own, for an objective that reads
-        them after another's backward has freed the step's)."""
+        """The learned media as the step's priors read them: composed anew (a graph of their
+        own, for an objective that reads them after another's backward has freed the
+        step's), or the leaves that :meth:`pairs` handed out (:meth:`backward_media`)."""
+
+    def backward_media(self, backward: Callable[[torch.Tensor], None]) -> None:
+        """After every objective's backward of a step: backpropagate (by ``backward``) what
+        they left on media that :meth:`pairs` handed out as leaves; nothing for a source
+        whose objectives reach the parameters directly."""
 
     def priors(self) -> dict[str, torch.Tensor]:
         """Losses on the source's own parameters by name, which the stage backpropagates

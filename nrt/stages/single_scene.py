@@ -13,6 +13,7 @@ import torch
 
 from nrt.modules.fields.protocols import ScatteredLightField, VoxelisedMedium
 from nrt.stages.start import DensityStart
+from nrt.stages.uncollided import UncollidedCache
 
 if TYPE_CHECKING:
     from nrt.stages.rte import RTEStage
@@ -39,9 +40,15 @@ class SingleScene:
         """Whether the medium holds its start (baked, or loaded with a checkpoint's state)."""
 
     # ------------------------------------------------------------- the pairs
-    def pairs(self) -> list[tuple[Any, ScatteredLightField]]:
+    def pairs(self, batch: dict | None = None) -> list[tuple[Any, ScatteredLightField]]:
         medium = self.stage.transport_medium()
         return [(medium, light) for light in self.stage.env_lights]
+
+    def uncollided_due(self, cache: UncollidedCache, step: int) -> list[tuple[int, bool]]:
+        """Every sky's light on the cache's schedule."""
+        if not cache.due(step):
+            return []
+        return [(i, not cache.fresh) for i in range(len(self.stage.env_lights))]
 
     def scene_of(self, batch: dict) -> torch.Tensor | None:
         """Each ray's environment among the training ones (``env``); None with one."""
@@ -55,6 +62,9 @@ class SingleScene:
 
     def fresh_voxels(self) -> list:
         return [self.stage.medium.voxels()]
+
+    def backward_media(self, backward) -> None:
+        """Nothing: the objectives backpropagate into the medium themselves."""
 
     # --------------------------------------------------------------- training
     def priors(self) -> dict[str, torch.Tensor]:

@@ -44,25 +44,30 @@ class UncollidedCache:
         return not self.fresh or step % self.every == 0
 
     @torch.no_grad()
-    def refresh_all(self, scenes: Sequence[tuple], sky_of) -> None:
+    def refresh_all(self, scenes: Sequence[tuple], sky_of, first: bool | None = None) -> None:
         """Refresh the light of every (medium, light) pair of ``scenes`` in its medium
         (without gradient), lit by ``sky_of(light)``: one by one (:meth:`refresh`), or with
-        :attr:`shared`, the lights of one medium from one set of shadow rays."""
+        :attr:`shared`, the lights of one medium from one set of shadow rays. ``first``:
+        whether these caches are refreshed for the first time (replaced, not blended);
+        None: the first refresh of all (not :attr:`fresh`)."""
+        blend = 1.0 if (not self.fresh if first is None else first) else self.blend
         if not self.shared:
             for medium, light in scenes:
-                self.refresh(detached(medium), light, sky_of(light))
+                self.refresh(detached(medium), light, sky_of(light), blend)
             return
         groups: dict[int, list] = {}
         for medium, light in scenes:
             groups.setdefault(id(medium), [medium]).append(light)
         for medium, *lights in groups.values():
-            self.refresh_shared(detached(medium), lights, [sky_of(li) for li in lights])
+            self.refresh_shared(detached(medium), lights, [sky_of(li) for li in lights], blend)
 
     @torch.no_grad()
-    def refresh_shared(self, medium, lights: Sequence, skies: Sequence[Illumination]) -> None:
+    def refresh_shared(self, medium, lights: Sequence, skies: Sequence[Illumination],
+                       blend: float) -> None:
         """Project the uncollided light of each sky of ``skies`` in ``medium`` into the
-        cache of the light beside it, all from one set of shadow rays. The lights share
-        their cache points (the per-sky lights of one medium)."""
+        cache of the light beside it, all from one set of shadow rays, with weight
+        ``blend``. The lights share their cache points (the per-sky lights of one
+        medium)."""
         sigma_t, pts = extinction(medium), lights[0].cache_points()
         if any(not torch.equal(light.cache_points(), pts) for light in lights[1:]):
             raise ValueError("uncollided_shared: the lights of one medium need the same "
@@ -73,17 +78,16 @@ class UncollidedCache:
                                      self.directions, self.shadow_steps)
                  for i in range(0, len(pts), self.chunk)]
         for k, light in enumerate(lights):
-            light.set_uncollided(torch.cat([part[k] for part in parts]),
-                                 self.blend if self.fresh else 1.0)
+            light.set_uncollided(torch.cat([part[k] for part in parts]), blend)
 
     @torch.no_grad()
-    def refresh(self, medium, light, sky: Illumination) -> None:
+    def refresh(self, medium, light, sky: Illumination, blend: float) -> None:
         """Project the uncollided light of ``sky`` in ``medium`` at ``light``'s cache points
-        into its cache (``light.set_uncollided``)."""
+        into its cache (``light.set_uncollided``) with weight ``blend``."""
         sigma_t = extinction(medium)
         pts = light.cache_points()
         coef = torch.cat([uncollided_sh(pts[i:i + self.chunk], sigma_t, light.bbox,
                                         sky.rest, sky.sampler, sky.lights, light.degree,
                                         self.directions, self.shadow_steps)
                           for i in range(0, len(pts), self.chunk)])
-        light.set_uncollided(coef, self.blend if self.fresh else 1.0)
+        light.set_uncollided(coef, blend)

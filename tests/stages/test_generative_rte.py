@@ -236,6 +236,96 @@ def test_any_code_decodes_a_valid_medium(short):
     assert model.property_grids(12) is None  # one medium per member, not one
 
 
+def test_one_decode_a_step_gives_the_gradients_of_one_decode_per_objective(short):
+    """The step decodes each member's medium once, hands the objectives leaves and carries
+    their gradients back through the decoders in one backward (``SceneFamily.pairs``,
+    ``backward_media``). Every parameter's gradient equals the chain rule taken the direct
+    way: each objective on media decoded for it, summed, one backward. The two sum the
+    same float32 terms in another order, so they agree to rounding (rtol 1e-4 of each
+    gradient's largest entry, against gradients that differ between members and steps by
+    order 1)."""
+    model, family = short["model"], short["model"].scenes
+    batch = next(iter(short["dm"].train_dataloader()))
+    weights = model.active_weights()
+    assert {"photo", "transport", "extinction_prior"} <= set(weights)  # all read the media
+    params = [p for p in model.parameters() if p.requires_grad]
+
+    def gradients(step) -> list[torch.Tensor]:
+        model.zero_grad(set_to_none=True)
+        torch.manual_seed(7)  # the objectives draw the same samples both ways
+        step()
+        return [torch.zeros_like(p) if p.grad is None else p.grad.clone() for p in params]
+
+    def once_a_step():
+        scenes = family.pairs(batch)
+        context = model.step_context(scenes)
+        for name, weight in weights.items():
+            (weight * model.objectives[name].loss({**batch, "scene": batch["member"]},
+                                                   context)).backward()
+        family.backward_media(torch.Tensor.backward)
+
+    def direct():
+        scenes = [family.member_scene(k) for k in range(K)]
+        context = model.step_context(scenes)
+        context.voxels = lambda: [family.member_medium(k) for k in range(K)]
+        sum(weight * model.objectives[name].loss({**batch, "scene": batch["member"]}, context)
+            for name, weight in weights.items()).backward()
+
+    ours = gradients(once_a_step)
+    assert not family._decoded  # the step's media are let go
+    reference = gradients(direct)
+    codes = next(i for i, p in enumerate(params) if p is family.codes)
+    assert ours[codes].abs().max() > 0  # the photos reach the codes through the leaves
+    for a, b in zip(ours, reference, strict=True):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-4 * float(b.abs().max()) + 1e-12)
+
+
+def test_a_step_of_some_members_concerns_those_members_only(short):
+    """With batches of some members (``step_members``), a step decodes their media and
+    lights alone, maps each ray to its member's place among them, takes the codes' prior
+    over them, counts their steps and refreshes each member's uncollided light every
+    ``uncollided_every`` of its own steps, its first refresh replacing the cache."""
+    model, family = short["model"], short["model"].scenes
+    saved = family.member_steps.clone()
+    try:
+        family.member_steps.zero_()
+        step = torch.tensor([1, 3])
+        batch = {"member": torch.tensor([3, 1, 1, 3, 3]), "step_members": step}
+        pairs = family.pairs(batch)
+        assert len(pairs) == 2 and len(family.fresh_voxels()) == 2
+        assert family.scene_of(batch).tolist() == [1, 0, 0, 1, 1]
+        expected = family.latent_prior_weight * family.codes[step].square().sum(-1).mean()
+        assert torch.equal(family.priors()["latent_prior"], expected)
+        assert family.uncollided_due(model.uncollided, 5) == [(0, True), (1, True)]
+        assert family.member_steps.tolist() == [0, 1, 0, 1]
+        every = model.uncollided.every
+        due = []  # per step: member -> whether it is its first refresh
+        for n in range(2 * every):  # member 3 every step, member 0 every other step
+            chosen = torch.tensor([0, 3]) if n % 2 else torch.tensor([3])
+            family.pairs({"member": chosen, "step_members": chosen})
+            due.append({int(chosen[i]): first
+                        for i, first in family.uncollided_due(model.uncollided, 0)})
+        # member 3 has had one step before: its own steps `every` and 2 `every` refresh
+        assert [n for n, d in enumerate(due) if 3 in d] == [every - 1, 2 * every - 1]
+        assert [(n, d[0]) for n, d in enumerate(due) if 0 in d] == [(1, True)]
+        assert family.member_steps.tolist() == [every, 1, 0, 1 + 2 * every]
+    finally:
+        family.member_steps.copy_(saved)
+        family._step, family._decoded = None, []
+
+
+def test_a_run_of_two_members_a_step_trains_every_member(family_dir, short_ea, tmp_path):
+    """``data.members_per_step=2`` on the four-member family: every step decodes two, each
+    member is drawn, every code moves and every member is validated."""
+    run = train_stage2(family_dir, short_ea, tmp_path, *SHORT, "data.members_per_step=2")
+    family = run["model"].scenes
+    assert family.member_steps.sum() == 2 * run["cfg"].stage.steps
+    assert (family.member_steps > 0).all()
+    start = load_generative_ea(str(short_ea))[2]
+    assert ((family.codes.detach() - start).norm(dim=-1) > 0).all()
+    assert all(f"val/psnr_member{k}" in run["metrics"] for k in range(K))
+
+
 def test_resume_continues_the_codes(short, family_dir, short_ea, tmp_path):
     """A run resumed from the checkpoint continues from its codes (not the EA run's) and
     the codes' optimiser group."""

@@ -70,8 +70,9 @@ def test_sky_lights_give_each_environment_its_light_field():
 
 def test_the_uncollided_cache_refreshes_on_its_schedule_and_blends_after_the_first(monkeypatch):
     """Due at the first step and every ``uncollided_every`` steps after; the first refresh
-    replaces the cache (blend 1), later ones blend with ``uncollided_blend``; the points
-    are projected in chunks of ``uncollided_chunk``."""
+    replaces the cache (blend 1), later ones blend with ``uncollided_blend``, unless the
+    caller says the caches are new (a family member's first refresh when steps draw some
+    members); the points are projected in chunks of ``uncollided_chunk``."""
     chunks: list[int] = []
 
     def projection(points, *args):
@@ -80,15 +81,17 @@ def test_the_uncollided_cache_refreshes_on_its_schedule_and_blends_after_the_fir
 
     monkeypatch.setattr(uncollided_module, "uncollided_sh", projection)
     monkeypatch.setattr(uncollided_module, "extinction", lambda medium: None)
+    monkeypatch.setattr(uncollided_module, "detached", lambda medium: medium)
     cache = UncollidedCache({"uncollided_every": 10, "uncollided_directions": 4,
                              "shadow_steps": 2, "uncollided_chunk": 2,
                              "uncollided_blend": 0.5})
     assert cache.due(3)  # nothing cached yet
     light = Light()
-    cache.refresh(None, light, sky(0))
+    cache.refresh_all([(None, light)], lambda light: sky(0))
     cache.fresh = True
-    cache.refresh(None, light, sky(0))
-    assert light.blends == [1.0, 0.5] and chunks == [2, 2, 1] * 2
+    cache.refresh_all([(None, light)], lambda light: sky(0))
+    cache.refresh_all([(None, light)], lambda light: sky(0), first=True)
+    assert light.blends == [1.0, 0.5, 1.0] and chunks == [2, 2, 1] * 3
     assert [step for step in range(25) if cache.due(step)] == [0, 10, 20]
 
 
@@ -143,7 +146,7 @@ def test_a_shared_refresh_refuses_lights_with_different_cache_points(monkeypatch
                              "shadow_steps": 2, "uncollided_shared": True})
     lights = [Light(), Other()]
     with pytest.raises(ValueError, match="same cache points"):
-        cache.refresh_shared(None, lights, [sky(0), sky(1)])
+        cache.refresh_shared(None, lights, [sky(0), sky(1)], 1.0)
     assert all(light.blends == [] for light in lights)
 
 

@@ -52,6 +52,23 @@ class Voxels:
         g = None if self.g_shared is None else self.g_shared.detach()
         return Voxels(self.stacked.detach(), self.channels, self.phase, g, self.bbox)
 
+    def as_leaf(self) -> Voxels:
+        """The same values as leaves of a graph of their own: objectives that read them leave
+        their gradients on the leaves, and :meth:`carried_back` takes the sum of those
+        through this voxels' own graph in one backward."""
+        g = None if self.g_shared is None else self.g_shared.detach().requires_grad_()
+        return Voxels(self.stacked.detach().requires_grad_(), self.channels, self.phase, g,
+                      self.bbox)
+
+    def carried_back(self, leaf: Voxels) -> torch.Tensor | None:
+        """A scalar whose gradient through this voxels' graph is the gradient ``leaf`` (its
+        :meth:`as_leaf`) received: ``sum(stacked * leaf.stacked.grad)`` (plus the shared
+        g's term); None when the leaf received none."""
+        terms = [(value * copy.grad).sum()
+                 for value, copy in ((self.stacked, leaf.stacked), (self.g_shared, leaf.g_shared))
+                 if copy is not None and copy.grad is not None and value.requires_grad]
+        return torch.stack(terms).sum() if terms else None
+
     def sigma_t(self, x: torch.Tensor) -> torch.Tensor:
         with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
             return sample_grid(self.extinction, x, self.bbox)
