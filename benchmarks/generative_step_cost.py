@@ -30,6 +30,7 @@ import tempfile
 from pathlib import Path
 
 from benchmarks.common import commit_of, output_dir, train
+from benchmarks.generative_stage1 import read_table
 from nrt.run_dirs import LAST_CKPT
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -64,11 +65,11 @@ def largest(report: dict, n: int = 3) -> str:
     return "; ".join(f"{row['component']} {row['ms']:.1f}" for row in rows)
 
 
-def read_table(table: Path) -> list[dict]:
-    if not table.exists():
-        return []
-    with open(table) as f:
-        return list(csv.DictReader(f))
+def pending(rows: list[dict], preset: str, members: int, per_step: list[str]) -> list[str]:
+    """The members-a-step settings of ``per_step`` (``all`` or a number) still to run for a
+    family of ``members`` at ``preset``: neither in ``rows`` already nor above K."""
+    done = {r["per_step"] for r in rows if (r["preset"], r["members"]) == (preset, str(members))}
+    return [m for m in per_step if m not in done and (m == "all" or int(m) <= members)]
 
 
 def main(argv: list[str] | None = None) -> list[dict]:
@@ -83,12 +84,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     args = parser.parse_args(argv)
     code = commit_of(ROOT)
     rows = read_table(args.table)
-    done = {(r["preset"], r["members"], r["per_step"]) for r in rows}
     single = profile(args.preset, args.steps, args.warmup, [])["step_ms"]["unprofiled"]
     print(f"single scene: {single:.1f} ms a step", flush=True)
     for k in map(int, args.members.split(",")):
-        todo = [m for m in args.per_step.split(",")
-                if (args.preset, str(k), m) not in done and (m == "all" or int(m) <= k)]
+        todo = pending(rows, args.preset, k, args.per_step.split(","))
         if not todo:
             continue
         run, _ = train("ea", output_dir(), args.preset,
