@@ -335,6 +335,30 @@ def last_value(rows: list[dict], key: str) -> float:
     return values(rows, key)[-1]
 
 
+NRT_EVAL = [sys.executable, "-m", "nrt.cli.eval"]
+
+
+def run_eval(out: Path, data_root: Path, *overrides: str, env: dict | None = None
+             ) -> subprocess.CompletedProcess:
+    """``nrt-eval preset=tiny`` through the real CLI, writing under ``out``."""
+    environ = {**os.environ, "NRT_OUTPUT_DIR": str(out), **(env or {})}
+    cmd = [*NRT_EVAL, "preset=tiny", f"paths.data_dir={data_root}", "render.progress=false",
+           *overrides]
+    return subprocess.run(cmd, env=environ, capture_output=True, text=True, timeout=600)
+
+
+def eval_metrics(proc: subprocess.CompletedProcess, base: Path) -> tuple[dict, Path]:
+    """The metrics of the evaluation ``proc`` ran and its folder: the one new folder in
+    ``base/eval`` (``base`` is the evaluated run, or the output folder for ``grids=``).
+    Never "the newest metrics.json anywhere": under ``-n 2`` the other worker evaluates in
+    the shared run folders at the same time."""
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    folders = [p.parent for p in (base / "eval").glob("*/metrics.json")]
+    shown = [f for f in folders if str(f) in proc.stdout + proc.stderr]
+    assert len(shown) == 1, (folders, proc.stderr[-2000:])
+    return json.loads((shown[0] / "metrics.json").read_text())["metrics"], shown[0]
+
+
 def only_run_dir(out: Path, stage: str) -> Path:
     runs = sorted((out / "default" / stage).iterdir())
     assert len(runs) == 1, runs

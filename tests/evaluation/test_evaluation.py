@@ -12,7 +12,6 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -29,26 +28,18 @@ from nrt.evaluation.evaluate import (
 )
 from nrt.metrics import ssim
 from nrt.weights import LPIPS_FILES, weights_dir
-from tests.conftest import cli_in_process, read_csv_metrics, run_train, values
+from tests.conftest import (
+    cli_in_process,
+    eval_metrics,
+    read_csv_metrics,
+    run_eval,
+    run_train,
+    values,
+)
 
 pytestmark = pytest.mark.e2e
 
-NRT_EVAL = [sys.executable, "-m", "nrt.cli.eval"]
 NRT_REPORT = [sys.executable, "-m", "nrt.cli.report"]
-
-
-def run_eval(out: Path, data_root: Path, *overrides: str, env: dict | None = None
-             ) -> subprocess.CompletedProcess:
-    environ = {**os.environ, "NRT_OUTPUT_DIR": str(out), **(env or {})}
-    cmd = [*NRT_EVAL, "preset=tiny", f"paths.data_dir={data_root}", "render.progress=false",
-           *overrides]
-    return subprocess.run(cmd, env=environ, capture_output=True, text=True, timeout=600)
-
-
-def eval_metrics(proc: subprocess.CompletedProcess, out: Path) -> tuple[dict, Path]:
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    folder = max(out.glob("**/eval/*/metrics.json"), key=lambda p: p.stat().st_mtime).parent
-    return json.loads((folder / "metrics.json").read_text())["metrics"], folder
 
 
 LPIPS_WEIGHTS = (weights_dir() / LPIPS_FILES["alex"]).is_file()
@@ -280,7 +271,7 @@ def test_eval_of_a_trained_run_and_export_at_a_chosen_resolution(tiny_sweep, tin
     proc = run_eval(out, tiny_dataset.parent, f"run={run}", "metrics.lpips=false",
                     "export.resolution=16", "relight.enabled=false",
                     "rerender.noise_floor=false")
-    metrics, folder = eval_metrics(proc, out)
+    metrics, folder = eval_metrics(proc, run)
     assert folder.parent == run / "eval"
     grids = load_property_grids(folder / "medium_grids.npz")
     assert grids["sigma_a"].shape == (16, 16, 16, 3)

@@ -11,13 +11,9 @@ from __future__ import annotations
 
 import csv
 import gc
-import json
 import math
-import os
 import re
 import shutil
-import subprocess
-import sys
 from types import SimpleNamespace
 
 import numpy as np
@@ -32,7 +28,7 @@ from nrt.evaluation.rerender import render_frames
 from nrt.physics.volume import cell_centres
 from nrt.stages.dpt import DPTModule
 from nrt.stages.ea import load_ea_field
-from tests.conftest import only_run_dir, read_csv_metrics, run_train, values
+from tests.conftest import eval_metrics, only_run_dir, read_csv_metrics, run_eval, run_train, values
 
 pytestmark = pytest.mark.e2e
 
@@ -51,16 +47,12 @@ def dpt_run(tiny_ea_run, tiny_dataset):
     return out, only_run_dir(out, "dpt"), proc
 
 
-def _eval(out, data_root, *overrides):
-    cmd = [sys.executable, "-m", "nrt.cli.eval", "preset=tiny", f"paths.data_dir={data_root}",
-           "metrics.lpips=false", "relight.enabled=false", "rerender.noise_floor=false",
-           "export.mitsuba=false", f"rerender.spp={EVAL_SPP}", "rerender.environments=all",
-           "render.progress=false", *overrides]
-    proc = subprocess.run(cmd, env={**os.environ, "NRT_OUTPUT_DIR": str(out)},
-                          capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    folder = max(out.glob("**/eval/*/metrics.json"), key=lambda p: p.stat().st_mtime)
-    return json.loads(folder.read_text())["metrics"]
+def _eval(out, data_root, run):
+    proc = run_eval(out, data_root, f"run={run}", "metrics.lpips=false",
+                    "relight.enabled=false", "rerender.noise_floor=false",
+                    "export.mitsuba=false", f"rerender.spp={EVAL_SPP}",
+                    "rerender.environments=all")
+    return eval_metrics(proc, run)[0]
 
 
 @pytest.mark.slow
@@ -100,7 +92,7 @@ def test_dpt_result_rerenders_better_than_its_ea_start(dpt_run, tiny_dataset):
     beats the same re-render of the EA start (the EA density at the ground truth's 32^3,
     albedo 0.8: better than the coarse start of the run)."""
     out, run, _ = dpt_run
-    after = _eval(out, tiny_dataset.parent, f"run={run}")
+    after = _eval(out, tiny_dataset.parent, run)
     # nrt-eval's property MSE of the export is the callback's final value (same cells).
     rows = read_csv_metrics(run)
     for key in ("sigma_a", "sigma_s", "sigma_t"):
