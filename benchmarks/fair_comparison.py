@@ -14,7 +14,10 @@ rendered by Mitsuba's scalar fallback (the variant where LLVM is missing) as rea
 of their own (``<scene>_photo<N>_scalar_rgb``, folder ``photo<N>_scalar_rgb``). Per run,
 ``<data>/<scene>/photo<N>/<method>.csv``
 (the curves) and ``<method>.json`` (nrt-eval's metrics, steps, seconds) are written; a
-run whose JSON exists is skipped, so a killed comparison resumes.
+run whose JSON exists is skipped, so a killed comparison resumes. ``--given-to-all`` adds
+training overrides to every method alike (``budget.rte.medium_resolutions=[4,8,16,32,64]``
+moves both methods' grid schedule: the baseline's follows stage 2's); they are recorded, and
+one data folder holds one set of them.
 
 ``redraw``: the figure (property MSE against training seconds, every scene and
 realisation, log time) and the Markdown table (mean and spread over realisations per scene
@@ -24,6 +27,7 @@ same EA weights and the machine's speed before each) from those files alone.
 
     python -m benchmarks.fair_comparison run [--scenes default,heldout,...] [--photo-seeds 0,1]
         [--photo-variant auto] [--methods rte,dpt,rte_paper] [--paper-on default]
+        [--given-to-all KEY=VALUE ...]
         [--budget-s 600] [--every-s 25] [--preset cpu] [--data DIR] [--out DIR]
     python -m benchmarks.fair_comparison redraw [--data DIR] [--figure PNG] [--table MD]
 """
@@ -33,6 +37,7 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -97,13 +102,20 @@ def run_all(args) -> None:
                 continue
             result = folder / f"{method}.json"
             if result.is_file():
+                given = read_record(result).get("given_to_all", [])
+                if given != args.given_to_all:
+                    print(f"{result} was run with --given-to-all {given or 'none'}, not "
+                          f"{args.given_to_all or 'none'}: pass the same overrides, or "
+                          "another --data folder for the changed comparison.", file=sys.stderr)
+                    raise SystemExit(2)
                 print(f"{label} {method}: done already", flush=True)
                 continue
             ckpt = ckpt or ea_checkpoint(name, args.preset, overrides)
-            record = run_method(folder / method, METHODS[method], overrides, ckpt,
-                                args.budget_s, args.every_s, args.preset, args.out,
-                                {"scene": scene, "photo_seed": seed, "method": method,
-                                 "photo_variant": args.photo_variant, "code": code})
+            record = run_method(folder / method, [*METHODS[method], *args.given_to_all],
+                                overrides, ckpt, args.budget_s, args.every_s, args.preset,
+                                args.out, {"scene": scene, "photo_seed": seed,
+                                           "method": method, "photo_variant": args.photo_variant,
+                                           "code": code, "given_to_all": args.given_to_all})
             print(summary_line(f"{label} {method}", record), flush=True)
 
 
@@ -311,6 +323,10 @@ def main() -> None:
                           "fallback where LLVM is missing); its realisations are kept apart")
     run.add_argument("--methods", default="rte,dpt,rte_paper")
     run.add_argument("--paper-on", default="default", help="scenes that run rte_paper too")
+    run.add_argument("--given-to-all", action="append", default=[], metavar="KEY=VALUE",
+                     help="a training override given to every method alike (repeatable; e.g. "
+                          "both methods' grid schedule); recorded, and a --data folder holds "
+                          "one set of them")
     add_budget_arguments(run, budget_s=600.0, every_s=25.0)
     run.add_argument("--data", type=Path, default=DATA)
     run.add_argument("--out", type=Path, default=output_dir() / "benchmarks" / "comparison")

@@ -262,6 +262,21 @@ def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     assert "| heldout | photo0 | not recorded | not recorded | not recorded |" in text
 
 
+def test_a_comparison_folder_holds_one_set_of_shared_overrides(tmp_path):
+    """Records made with other ``--given-to-all`` overrides are never mixed into a run: it
+    stops with exit status 2, naming the record, before any training."""
+    data = tmp_path / "data"
+    _record(data / "default" / "photo0", "rte", [0.0, 40.0], [9.0, 5.0], 35.0)
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.fair_comparison", "run",
+                           "--scenes", "default", "--photo-seeds", "0", "--methods", "rte",
+                           "--given-to-all", "budget.rte.medium_resolutions=[4,8,16,32,64]",
+                           "--data", str(data), "--out", str(tmp_path / "out")],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert str(data / "default" / "photo0" / "rte.json") in proc.stderr
+    assert "--given-to-all none" in proc.stderr and not (tmp_path / "out").exists()
+
+
 def test_a_realisation_of_the_scalar_variant_is_a_scene_of_its_own():
     """Photos of another variant never share a name (and so a dataset folder or EA run)
     with the same seed's photos of the best variant."""
