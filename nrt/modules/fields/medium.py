@@ -155,13 +155,16 @@ class NeuralMedium(Medium):
             unit = (x - self.bbox[0]) / (self.bbox[1] - self.bbox[0]) * 2 - 1
             return self.heads(self.rho(x).unsqueeze(-1), self.modulation(unit) + self.offsets)
 
-    def heads(self, rho: torch.Tensor, h: torch.Tensor) -> MediumProperties:
+    def heads(self, rho: torch.Tensor, h: torch.Tensor,
+              g_logit: torch.Tensor | None = None) -> MediumProperties:
         """Properties from the density ``rho`` (..., 1) and the raw outputs ``h`` (..., n)
-        (exponents, logits and the g field's pre-activation, offsets included)."""
+        (exponents, logits and the g field's pre-activation, offsets included); a shared g's
+        pre-activation ``g_logit`` (a scalar) in place of ``g_shared`` where given."""
         if self.phase == "field":
             g = G_MAX * torch.tanh(h[..., self.g_index])
         elif self.phase == "shared":
-            g = (G_MAX * torch.tanh(self.g_shared)).expand(h.shape[:-1])
+            logit = self.g_shared if g_logit is None else g_logit
+            g = (G_MAX * torch.tanh(logit)).expand(h.shape[:-1])
         else:
             g = None
         if self.by_extinction:

@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 from functools import partial
 
 import torch
+from torch import nn
 from torch.profiler import record_function
 
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
@@ -164,10 +165,11 @@ class VoxelMedium(NeuralMedium):
             r = self.density.shape[0]
             return self.compose(self.density, resample_cells(self.modulation.values, r))
 
-    def compose(self, density: torch.Tensor, h: torch.Tensor) -> Voxels:
+    def compose(self, density: torch.Tensor, h: torch.Tensor,
+                g_logit: torch.Tensor | None = None) -> Voxels:
         """:class:`Voxels` of a density (R, R, R, 1) and the modulation's raw outputs on the
-        same cells (R, R, R, n), offsets not yet added."""
-        props = self.heads(density, h + self.offsets)
+        same cells (R, R, R, n), offsets not yet added (``g_logit``: :meth:`heads`)."""
+        props = self.heads(density, h + self.offsets, g_logit)
         parts = [props.sigma_t, props.albedo]
         if self.phase == "field":
             parts.append(props.g.unsqueeze(-1))
@@ -185,23 +187,34 @@ class LatentVoxelMedium(VoxelMedium):
     density under the member's code), modulated by the exponents and logits that a
     :class:`~nrt.modules.fields.latent_grid.LatentGridDecoder` decodes from the shared feature grid
     (coarse to fine, as the plain modulation grid) and the code z (``features`` channels, an
-    MLP of ``layers`` hidden layers of width ``hidden``). It holds no density itself."""
+    MLP of ``layers`` hidden layers of width ``hidden``). It holds no density itself.
+
+    A shared g (``phase: hg``) is one parameter for every code, unless ``g_from_code``: then
+    each code has its own, ``g = G_MAX tanh(g_shared + w . z)`` with ``w`` starting at zero
+    (every code starts from the plain medium's g), as each member of a family has its own
+    g."""
 
     def __init__(self, effects: dict, latent_dim: int, features: int = 16, hidden: int = 64,
                  layers: int = 1, resolutions: Sequence[int] = (8,),
                  upsample_at: Sequence[float] = (), density_resolution: int = 64,
-                 init_albedo: float = 0.8, parametrization: str = "extinction"):
+                 init_albedo: float = 0.8, parametrization: str = "extinction",
+                 g_from_code: bool = False):
         decoder = partial(LatentGridDecoder, latent_dim=latent_dim, features=features,
                           hidden=hidden, layers=layers)
         super().__init__(effects, resolutions, upsample_at, density_resolution, init_albedo,
                          parametrization, modulation=decoder)
         del self.density  # supplied per member and code by the stage
         self.density_resolution = int(density_resolution)
+        self.g_weights = (nn.Parameter(torch.zeros(latent_dim))
+                          if g_from_code and self.phase == "shared" else None)
 
     def voxels_for(self, density: torch.Tensor, code: torch.Tensor) -> Voxels:
         """The properties of a density (R, R, R, 1) modulated under ``code`` (d_z,), on the
         density's cells (differentiable in the density, the decoder and the code)."""
-        return self.compose(density, self.modulation.on_cells(density.shape[0], code))
+        h = self.modulation.on_cells(density.shape[0], code)
+        if self.g_weights is None:
+            return self.compose(density, h)
+        return self.compose(density, h, self.g_shared + self.g_weights @ code.to(h))
 
     def voxels(self) -> Voxels:
         raise TypeError(NO_DENSITY)

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from nrt.modules.fields.medium import NeuralMedium
-from nrt.modules.fields.voxel_medium import VoxelMedium
+from nrt.modules.fields.voxel_medium import LatentVoxelMedium, VoxelMedium
+from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
 
 pytestmark = pytest.mark.unit
@@ -41,3 +42,28 @@ def test_voxel_medium_composes_the_neural_heads_on_its_cells(effects, parametriz
     mid = (centres[0] + centres[1]) / 2
     torch.testing.assert_close(medium(mid[None]).sigma_t[0],
                                (ours.sigma_t[0] + ours.sigma_t[1]) / 2, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("g_from_code", [False, True])
+def test_a_latent_medium_gives_each_code_its_own_g_only_when_asked(g_from_code):
+    """With ``g_from_code`` a code's g is ``G_MAX tanh(g_shared + w . z)``: every code starts
+    at the plain medium's g (w = 0), the gradient reaches w and the code, and once w moves
+    two codes differ in g; without it one g serves every code (the phase's single
+    parameter)."""
+    torch.manual_seed(3)
+    medium = LatentVoxelMedium({"phase": "hg", "chromatic": True}, latent_dim=4,
+                               resolutions=[4], density_resolution=8, g_from_code=g_from_code)
+    density = torch.rand(8, 8, 8, 1) + 0.5
+    a, b = torch.randn(4, requires_grad=True), torch.randn(4)
+    assert float(medium.voxels_for(density, a).g_shared) == 0.0  # both start at g = 0
+    medium.voxels_for(density, a).g_shared.backward()
+    if not g_from_code:
+        assert medium.g_weights is None and a.grad is None
+        return
+    assert medium.g_weights.grad.abs().sum() > 0  # d g / d w = G_MAX z at the start
+    with torch.no_grad():
+        medium.g_weights.copy_(torch.tensor([0.5, -0.3, 0.2, 0.1]))
+    ga, gb = (medium.voxels_for(density, z).g_shared for z in (a, b))
+    expected = G_MAX * torch.tanh(medium.g_shared + medium.g_weights @ a)
+    torch.testing.assert_close(ga, expected)
+    assert abs(float(ga - gb)) > 1e-3 and abs(float(ga)) < G_MAX
