@@ -35,6 +35,7 @@ same EA weights and the machine's speed before each) from those files alone.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import statistics
 import sys
@@ -102,7 +103,7 @@ def run_all(args) -> None:
                 continue
             result = folder / f"{method}.json"
             if result.is_file():
-                given = read_record(result).get("given_to_all", [])
+                given = json.loads(result.read_text()).get("given_to_all", [])
                 if given != args.given_to_all:
                     print(f"{result} was run with --given-to-all {given or 'none'}, not "
                           f"{args.given_to_all or 'none'}: pass the same overrides, or "

@@ -58,8 +58,8 @@ def test_the_methods_order_alternates_between_realisations(tmp_path, monkeypatch
     (tmp_path / "heldout" / "photo1" / "dpt.json").write_text("{}")  # done already
     fair_comparison.run_all(Namespace(
         methods="rte,dpt,rte_paper", scenes="default,heldout", photo_seeds="0,1",
-        photo_variant="auto", paper_on="default", budget_s=1.0, every_s=1.0, preset="tiny",
-        data=tmp_path, out=tmp_path / "runs"))
+        photo_variant="auto", paper_on="default", given_to_all=[], budget_s=1.0, every_s=1.0,
+        preset="tiny", data=tmp_path, out=tmp_path / "runs"))
     assert order == [("default", "photo0", "rte"), ("default", "photo0", "dpt"),
                      ("default", "photo0", "rte_paper"), ("default", "photo1", "rte_paper"),
                      ("default", "photo1", "dpt"), ("default", "photo1", "rte"),
