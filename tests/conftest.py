@@ -348,8 +348,9 @@ def run_eval(out: Path, data_root: Path, *overrides: str, env: dict | None = Non
 
 
 def eval_metrics(proc: subprocess.CompletedProcess, base: Path) -> tuple[dict, Path]:
-    """The metrics of the evaluation ``proc`` ran and its folder: the one new folder in
-    ``base/eval`` (``base`` is the evaluated run, or the output folder for ``grids=``).
+    """The metrics of the evaluation ``proc`` ran and its folder: the one folder in
+    ``base/eval`` that the command's log names (``base`` is the evaluated run, or the output
+    folder for ``grids=``).
     Never "the newest metrics.json anywhere": under ``-n 2`` the other worker evaluates in
     the shared run folders at the same time."""
     assert proc.returncode == 0, proc.stderr[-3000:]

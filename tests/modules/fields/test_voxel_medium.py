@@ -47,8 +47,8 @@ def test_voxel_medium_composes_the_neural_heads_on_its_cells(effects, parametriz
 @pytest.mark.parametrize("g_from_code", [False, True])
 def test_a_latent_medium_gives_each_code_its_own_g_only_when_asked(g_from_code):
     """With ``g_from_code`` a code's g is ``G_MAX tanh(g_shared + w . z)``: every code starts
-    at the plain medium's g (w = 0), the gradient reaches w and the code, and once w moves
-    two codes differ in g; without it one g serves every code (the phase's single
+    at the plain medium's g (w = 0), the gradient reaches w at once and the code once w has
+    moved, and then two codes differ in g; without it one g serves every code (the phase's single
     parameter)."""
     torch.manual_seed(3)
     medium = LatentVoxelMedium({"phase": "hg", "chromatic": True}, latent_dim=4,
@@ -61,8 +61,11 @@ def test_a_latent_medium_gives_each_code_its_own_g_only_when_asked(g_from_code):
         assert medium.g_weights is None and a.grad is None
         return
     assert medium.g_weights.grad.abs().sum() > 0  # d g / d w = G_MAX z at the start
+    assert not a.grad.any()  # d g / d z = G_MAX w: zero while w is
     with torch.no_grad():
         medium.g_weights.copy_(torch.tensor([0.5, -0.3, 0.2, 0.1]))
+    medium.voxels_for(density, a).g_shared.backward()
+    assert a.grad.abs().sum() > 0  # once w moves, the code gets g's gradient too
     with torch.no_grad():
         ga, gb = (medium.voxels_for(density, z).g_shared for z in (a, b))
         expected = G_MAX * torch.tanh(medium.g_shared + medium.g_weights @ a)
