@@ -264,6 +264,7 @@ def figure(results: dict, path: Path) -> Path:
     import matplotlib.ticker
 
     scenes = list(dict.fromkeys(k[0] for k in results))
+    realisations = sorted({k[1] for k in results})  # one line style each
     fig, axes = plt.subplots(len(scenes), len(PROPERTIES), squeeze=False,
                              figsize=(3.4 * len(PROPERTIES), 2.6 * len(scenes)))
     for row, scene in enumerate(scenes):
@@ -276,7 +277,7 @@ def figure(results: dict, path: Path) -> Path:
                     continue
                 # log time has no zero: the start (step 0) is drawn at half the first interval
                 t = np.maximum(c["wall_s"], c["wall_s"][c["wall_s"] > 0].min(initial=1.0) / 2)
-                style = "-" if photos == "photo0" else "--"
+                style = ("-", "--", ":", "-.")[realisations.index(photos) % 4]
                 ax.plot(t[ok], c[key][ok], style, color=COLOURS[method], lw=1.2,
                         label=f"{LABELS[method]}, {photos}")
                 ax.plot(t[ok][:1], c[key][ok][:1], "o", color=COLOURS[method], ms=3)
@@ -303,7 +304,7 @@ def figure(results: dict, path: Path) -> Path:
             if not line.get_label().startswith("_"):
                 handles.setdefault(line.get_label(), line)
     fig.legend(handles.values(), handles.keys(), loc="lower center", fontsize=8,
-               ncol=min(len(handles), 3), frameon=False)
+               ncol=min(len(handles), 3), frameon=False, bbox_to_anchor=(0.5, 0.015))
     fig.text(0.01, 0.005, "*: the baseline's best value on the way (not selectable without "
              "the truth)", fontsize=7)
     fig.tight_layout(rect=(0, 0.04 + 0.025 * ((len(handles) + 2) // 3), 1, 1))
