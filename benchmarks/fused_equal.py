@@ -1,8 +1,10 @@
 """A fused CPU kernel switched off and on at equal steps: stage 1 with the fused hash grid, or
-stage 2 with the fused grid lookups, per scene and seed, one run after the other.
+stage 2 with the fused grid lookups (or with all its speed levers), per scene and seed, one
+run after the other.
 
     python -m benchmarks.fused_equal --kernel hash_grid --scenes default,heldout2 --seeds 0,1
     python -m benchmarks.fused_equal --kernel lookups --scenes default,heldout2 --seeds 0,1
+    python -m benchmarks.fused_equal --kernel rte_levers --scenes default,heldout2 --seeds 0,1
 
 ``--kernel hash_grid`` trains ``nrt-train stage=ea`` with
 ``model.density_field.hash_grid.fused=false`` then ``true`` and appends a row per run to
@@ -11,10 +13,13 @@ correlation and relative error. ``--kernel lookups`` trains ``nrt-train stage=rt
 scene's EA checkpoint (the newest finished one under the output folder, else a new one; the
 same for both runs) with ``fused_lookups=false`` then ``true`` and appends to
 ``docs/data/step_speed/fused_lookups_rte_equal.csv``: the held-out PSNR and the property
-MSEs x100. Both add the steps, the training seconds and the commit; the runs go under
-``<output dir>/equal`` (datasets from the shared cache). A kernel changes only the order of
-float sums, so what separates a pair is chance; the seed spread of one side is the scale to
-judge them by.
+MSEs x100. ``--kernel rte_levers`` is ``lookups`` with the fused lookups and marches and
+``losses.samples.uncollided_shared`` switched together (appending to
+``docs/data/step_speed/rte_levers_equal.csv``): the shared refresh draws its shadow rays
+differently, so there chance separates a pair by more than float rounding. All add the
+steps, the training seconds and the commit; the runs go under ``<output dir>/equal``
+(datasets from the shared cache). A kernel changes only the order of float sums, so what
+separates a pair is chance; the seed spread of one side is the scale to judge them by.
 """
 
 from __future__ import annotations
@@ -26,15 +31,17 @@ from pathlib import Path
 from benchmarks.common import SCENES, commit_of, ea_checkpoint, output_dir, train
 from nrt.run_dirs import read_run_info
 
-KERNELS = {  # name -> (stage, switch, table, the run's final metrics kept: column -> key)
-    "hash_grid": ("ea", "model.density_field.hash_grid.fused",
+RTE_KEPT = {"psnr_heldout": "val/psnr", "mse_sigma_a_x100": "val/mse_sigma_a_x100",
+            "mse_sigma_s_x100": "val/mse_sigma_s_x100", "mse_sigma_t_x100": "val/mse_sigma_t_x100"}
+KERNELS = {  # name -> (stage, switches set together, table, final metrics kept: column -> key)
+    "hash_grid": ("ea", ("model.density_field.hash_grid.fused",),
                   "docs/data/step_speed/fused_hash_grid_ea_equal.csv",
                   {"psnr_heldout": "val/psnr", "density_corr": "val/density_corr",
                    "density_rel_err": "val/density_rel_err"}),
-    "lookups": ("rte", "fused_lookups", "docs/data/step_speed/fused_lookups_rte_equal.csv",
-                {"psnr_heldout": "val/psnr", "mse_sigma_a_x100": "val/mse_sigma_a_x100",
-                 "mse_sigma_s_x100": "val/mse_sigma_s_x100",
-                 "mse_sigma_t_x100": "val/mse_sigma_t_x100"}),
+    "lookups": ("rte", ("fused_lookups",), "docs/data/step_speed/fused_lookups_rte_equal.csv",
+                RTE_KEPT),
+    "rte_levers": ("rte", ("fused_lookups", "losses.samples.uncollided_shared"),
+                   "docs/data/step_speed/rte_levers_equal.csv", RTE_KEPT),
 }
 
 
@@ -54,7 +61,7 @@ def main() -> None:
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--table", type=Path, help="default: the kernel's table")
     args = parser.parse_args()
-    stage, switch, default_table, keep = KERNELS[args.kernel]
+    stage, switches, default_table, keep = KERNELS[args.kernel]
     table_path = args.table or Path(default_table)
     columns = ["scene", "preset", "seed", "fused", "steps", "train_s", *keep, "code"]
     out = output_dir() / "equal"
@@ -72,11 +79,11 @@ def main() -> None:
                 for fused in (False, True):
                     run, _ = train(stage, out, args.preset, [
                         *SCENES[scene], *start, f"seed={seed}",
-                        f"{switch}={str(fused).lower()}"])
+                        *(f"{switch}={str(fused).lower()}" for switch in switches)])
                     table.writerow({"scene": scene, "preset": args.preset, "seed": seed,
                                     "fused": fused, **row(run, keep), "code": code})
                     f.flush()
-                    print(f"{scene} seed {seed} {switch}={fused}: {run}", flush=True)
+                    print(f"{scene} seed {seed} {args.kernel}={fused}: {run}", flush=True)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,11 @@ with respect to the points: :func:`~nrt.physics.volume.sample_grid` takes the Py
 where one is needed, on other devices, and where the extension cannot be built (one warning
 per process says why).
 
+:func:`fused_march` is :func:`~nrt.physics.volume.optical_depth` through a grid in one pass:
+the strata's points and values are never stored (a shadow ray's march otherwise allocates
+both, rays x strata x 3 and x C); each lookup is the PyTorch path's, the strata's mean sums
+in order (equal to the PyTorch path's to float rounding).
+
 The switch is process-wide (:func:`use_fused_lookups`, set by the ``fused_lookups``
 callback of nrt-train), like torch's own backend flags: every lookup of a run goes the same
 way.
@@ -86,3 +91,43 @@ def fused_sample(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor
     dtype = points.dtype
     return FusedLookup.apply(grid.to(dtype).contiguous(), points.contiguous(),
                              bbox.contiguous())
+
+
+class FusedMarch(torch.autograd.Function):
+    """``(grid (Nz, Ny, Nx, C), origins (N, 3), dirs (N, 3), t0, length, offset (N,), bbox
+    (2, 3), strata) -> (N, C)``, optical depths, all of one dtype; differentiable in the
+    grid only."""
+
+    @staticmethod
+    def forward(ctx, grid: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+                t0: torch.Tensor, length: torch.Tensor, offset: torch.Tensor,
+                bbox: torch.Tensor, strata: int) -> torch.Tensor:
+        ctx.save_for_backward(origins, dirs, t0, length, offset, bbox)
+        ctx.shape, ctx.strata = tuple(grid.shape), strata
+        return EXTENSION.get().march_forward(grid, origins, dirs, t0, length, offset, bbox,
+                                             strata)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+        none = (None,) * 7
+        if not ctx.needs_input_grad[0]:
+            return (None, *none)
+        return (EXTENSION.get().march_backward(grad.contiguous(), *ctx.saved_tensors,
+                                               ctx.strata, list(ctx.shape)), *none)
+
+
+@torch.compiler.disable  # an opaque C++ call: compiled code runs it eagerly
+def fused_march(grid: torch.Tensor, origins: torch.Tensor, dirs: torch.Tensor,
+                t0: torch.Tensor, length: torch.Tensor, offset: torch.Tensor,
+                bbox: torch.Tensor, strata: int) -> torch.Tensor | None:
+    """Optical depths (N, C) of rays ``origins``, ``dirs`` (N, 3) from ``t0`` over
+    ``length`` (N,), ``strata`` strata shifted by ``offset`` (N,) in [0, 1), through
+    ``grid`` (Nz, Ny, Nx, C) in ``bbox`` (all cast to the origins' dtype), or None where
+    the extension cannot be built (the caller takes the PyTorch path)."""
+    if EXTENSION.get() is None:
+        return None
+    dtype = origins.dtype
+    return FusedMarch.apply(grid.to(dtype).contiguous(),
+                            *(t.to(dtype).contiguous() for t in (origins, dirs, t0, length,
+                                                                 offset, bbox)), int(strata))

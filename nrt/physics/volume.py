@@ -107,6 +107,19 @@ def sample_grid(grid: torch.Tensor, points: torch.Tensor, bbox: torch.Tensor) ->
     return out.reshape(batches, c, -1).transpose(1, 2).reshape(*lead, c)
 
 
+class GridExtinction:
+    """Extinction read from a grid: ``sigma_t(points (..., 3)) -> (..., C)``, the
+    :func:`sample_grid` lookup of ``grid`` (Nz, Ny, Nx, C) in ``bbox``; :func:`optical_depth`
+    marches it in one fused pass where the fused kernels apply."""
+
+    def __init__(self, grid: torch.Tensor, bbox: torch.Tensor):
+        self.grid, self.bbox = grid, bbox
+
+    def __call__(self, points: torch.Tensor) -> torch.Tensor:
+        with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
+            return sample_grid(self.grid, points, self.bbox)
+
+
 def optical_depth(
     sigma_t, origins: torch.Tensor, dirs: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor,
     n_samples: int, jitter: bool = False,
@@ -116,17 +129,44 @@ def optical_depth(
     (an unbiased estimate of the depth that does not alias with a grid's cells).
 
     ``sigma_t`` maps points (..., 3) to extinction (..., C); returns (..., C). Segments
-    with ``t1 <= t0`` give 0.
+    with ``t1 <= t0`` give 0. A :class:`GridExtinction` is marched by one fused kernel
+    where :func:`~nrt.physics.fused_lookup.fusable` (the same random offsets; the depth equal
+    to float rounding).
     """
     with record_function("nrt/ray_marching"):
         length = (t1 - t0).clamp_min(0.0)
         offset = (torch.rand(*t0.shape, 1, dtype=origins.dtype, device=origins.device)
                   if jitter else 0.5)
+    if isinstance(sigma_t, GridExtinction) and not (
+            (dirs.requires_grad or t0.requires_grad or t1.requires_grad)
+            and torch.is_grad_enabled()) and \
+            fused_lookup.fusable(sigma_t.grid, origins, sigma_t.bbox):
+        depth = fused_depth(sigma_t, origins, dirs, t0, length, offset, n_samples)
+        if depth is not None:
+            return depth
+    with record_function("nrt/ray_marching"):
         frac = (torch.arange(n_samples, dtype=origins.dtype, device=origins.device) + offset) \
             / n_samples
         t = t0.unsqueeze(-1) + length.unsqueeze(-1) * frac  # (..., S)
         pts = origins.unsqueeze(-2) + t.unsqueeze(-1) * dirs.unsqueeze(-2)  # (..., S, 3)
     return sigma_t(pts).mean(-2) * length.unsqueeze(-1)
+
+
+def fused_depth(sigma_t: GridExtinction, origins: torch.Tensor, dirs: torch.Tensor,
+                t0: torch.Tensor, length: torch.Tensor, offset: torch.Tensor | float,
+                n_samples: int) -> torch.Tensor | None:
+    """:func:`optical_depth`'s march by :func:`~nrt.physics.fused_lookup.fused_march`: the rays
+    broadcast and flattened, (..., C); None where the extension cannot be built."""
+    with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
+        origins, dirs = torch.broadcast_tensors(origins, dirs)
+        lead = origins.shape[:-1]
+        flat = [t.expand(lead).reshape(-1) for t in (t0, length)]
+        off = (offset.squeeze(-1).expand(lead) if torch.is_tensor(offset)
+               else torch.full(lead, offset, dtype=origins.dtype, device=origins.device))
+        depth = fused_lookup.fused_march(sigma_t.grid, origins.reshape(-1, 3),
+                                         dirs.reshape(-1, 3), *flat, off.reshape(-1),
+                                         sigma_t.bbox, n_samples)
+        return None if depth is None else depth.reshape(*lead, -1)
 
 
 def transmittance(tau: torch.Tensor) -> torch.Tensor:

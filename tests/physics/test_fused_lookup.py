@@ -9,6 +9,18 @@ equality. The gradient forms the same products ``grad * w`` and sums them per ce
 another order (parts of the points, then the parts): two orders of n terms differ by at most
 2 n u S, S the cell's sum of |grad * w| (the PyTorch path's gradient for |grad|, the weights
 being >= 0), n <= 8 P; float64 is held to 1e-12 relative.
+
+The march (``optical_depth`` through a :class:`~nrt.physics.volume.GridExtinction`,
+:func:`~nrt.physics.fused_lookup.fused_march`): the same depths to float rounding (midpoint
+and jittered strata with the same random offsets; rays that leave the box, stop inside it or
+have empty segments; origins broadcast against directions as the shadow rays pass them), the
+grid's gradient, the same bits on 1 and 2 threads, and the PyTorch path where a gradient with
+respect to the rays is needed or the medium is not a grid. Each stratum's point and lookup are
+formed operation by operation as the PyTorch path forms them, so every looked-up value is the
+same; only the sum over the S strata runs in another order. Two orders of S non-negative
+terms differ by at most 2 S u times their sum, so a depth differs by at most 2 S u depth. The
+gradient sums n = 8 S N products ``grad * length / S * w`` per cell in another order: at most
+2 n u times the cell's gradient for |grad|.
 """
 
 import logging
@@ -19,7 +31,7 @@ import torch
 from nrt.callbacks import FusedLookups
 from nrt.compile import LazyExtension
 from nrt.physics import fused_lookup
-from nrt.physics.volume import sample_grid
+from nrt.physics.volume import GridExtinction, optical_depth, ray_box_intersect, sample_grid
 from tests.conftest import computed_by
 
 pytestmark = pytest.mark.unit
@@ -179,3 +191,103 @@ def test_without_a_compiler_one_warning_and_the_pytorch_path(monkeypatch, tmp_pa
     assert torch.equal(first, sample_grid(grid, x, BOX)) and torch.equal(second, first)
     assert len(caplog.records) == 1 and "no C++ compiler found" in caplog.text
     assert "PyTorch path" in caplog.text and "no C++" in fused_lookup.EXTENSION.unavailable()
+
+
+# ------------------------------------------------------------------ the march
+def rays(n: int, k: int, dtype: torch.dtype):
+    """Shadow-ray-like rays: ``n`` origins in the box (N, 1, 3), ``k`` directions each
+    (N, K, 3), from t0 (a tenth of the way, or 0) to the box's exit or a point before it;
+    the first ray's first segment empty (t1 < t0)."""
+    torch.manual_seed(3)
+    lo, hi = BOX[0].to(dtype), BOX[1].to(dtype)
+    x = lo + torch.rand(n, 1, 3, dtype=dtype) * (hi - lo)
+    d = torch.nn.functional.normalize(torch.randn(n, k, 3, dtype=dtype), dim=-1)
+    _, t_exit, _ = ray_box_intersect(x.expand_as(d), d, BOX.to(dtype))
+    t0 = torch.where(torch.rand(n, k) < 0.5, 0.1 * t_exit, torch.zeros_like(t_exit))
+    t1 = torch.where(torch.rand(n, k) < 0.5, 0.6 * t_exit, t_exit)
+    t1[0, 0] = t0[0, 0] - 0.1
+    return x, d, t0, t1
+
+
+def both_paths(grid: torch.Tensor, x, d, t0, t1, strata: int, jitter: bool, grad=None):
+    """(depths, grid gradient) by the PyTorch path, then the fused kernel, the same seed
+    before each (the jitter's offsets)."""
+    out = []
+    for on in (False, True):
+        fused_lookup.use_fused_lookups(on)
+        g = grid.detach().clone().requires_grad_(True)
+        torch.manual_seed(7)
+        depth = optical_depth(GridExtinction(g, BOX.to(x.dtype)), x, d, t0, t1, strata,
+                              jitter)
+        assert computed_by(depth, "FusedMarch") == on
+        depth.backward(torch.ones_like(depth) if grad is None else grad)
+        out.append((depth.detach(), g.grad))
+    return out
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("jitter", [False, True])
+def test_march_depths_are_the_pytorch_paths_to_rounding_and_so_is_the_gradient(
+        ext, fused, dtype, jitter):
+    torch.manual_seed(0)
+    grid = torch.rand(5, 7, 9, 3, dtype=dtype) * 4  # sigma_t >= 0, an uneven grid
+    x, d, t0, t1 = rays(300, 16, dtype)
+    grad = torch.randn(300, 16, 3, dtype=dtype)
+    (want, want_g), (got, got_g) = both_paths(grid, x, d, t0, t1, 16, jitter, grad)
+    assert got.shape == want.shape == (300, 16, 3)
+    assert torch.equal(got[0, 0], torch.zeros(3, dtype=dtype))  # the empty segment
+    assert (want > 0).float().mean() > 0.9
+    if dtype == torch.float64:
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(got_g, want_g, rtol=1e-12, atol=1e-12)
+        return
+    u = 2.0**-24
+    assert ((got - want).abs() <= 2 * 16 * u * want).all()
+    (_, scale), _ = both_paths(grid, x, d, t0, t1, 16, jitter, grad.abs())
+    assert ((got_g - want_g).abs() <= 2 * 8 * 16 * 300 * 16 * u * scale).all()
+    assert got_g.abs().sum() > 0
+
+
+def test_a_direction_broadcast_over_points_is_the_suns_march(ext, fused):
+    """The known lights' shadow rays pass one direction expanded over every point."""
+    torch.manual_seed(0)
+    grid = torch.rand(6, 6, 6, 1, dtype=torch.float64)
+    x = BOX[0].double() + torch.rand(200, 3, dtype=torch.float64) * (BOX[1] - BOX[0]).double()
+    sun = torch.nn.functional.normalize(torch.tensor([0.3, 1.0, -0.2], dtype=torch.float64), dim=0)
+    d = sun.expand_as(x)
+    _, t1, _ = ray_box_intersect(x, d, BOX.double())
+    (want, want_g), (got, got_g) = both_paths(grid, x, d, torch.zeros_like(t1), t1, 8, True)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got_g, want_g, rtol=1e-12, atol=1e-12)
+
+
+def test_the_march_gives_the_same_bits_on_one_and_two_threads(ext, fused):
+    torch.manual_seed(0)
+    grid = torch.rand(16, 16, 16, 3)
+    x, d, t0, t1 = rays(2000, 32, torch.float32)  # more strata than one partial holds
+    threads = torch.get_num_threads()
+    try:
+        runs = []
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            runs.append(both_paths(grid, x, d, t0, t1, 16, True)[1])
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+
+
+def test_a_gradient_with_respect_to_the_rays_or_a_medium_of_another_kind_takes_the_pytorch_path(
+        ext, fused):
+    grid = torch.rand(6, 6, 6, 3, dtype=torch.float64)
+    x, d, t0, t1 = rays(20, 4, torch.float64)
+    d = d.clone().requires_grad_(True)
+    depth = optical_depth(GridExtinction(grid, BOX.double()), x, d, t0, t1, 8)
+    assert not computed_by(depth, "FusedMarch")
+    (gd,) = torch.autograd.grad(depth.sum(), d)
+    assert gd.abs().sum() > 0
+    with torch.no_grad():  # nothing needs d/d(rays): fused, the same depths
+        fused_depth = optical_depth(GridExtinction(grid, BOX.double()), x, d, t0, t1, 8)
+    torch.testing.assert_close(fused_depth, depth.detach(), rtol=1e-12, atol=1e-12)
+    g = grid.clone().requires_grad_(True)
+    plain = optical_depth(lambda p: GridExtinction(g, BOX.double())(p), x, d.detach(), t0, t1, 8)
+    assert not computed_by(plain, "FusedMarch") and computed_by(plain, "FusedLookup")

@@ -33,20 +33,23 @@ from torch.profiler import record_function
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
 from nrt.modules.fields.latent_grid import LatentGridDecoder
 from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
-from nrt.physics.volume import at_cell_centres, resample_cells, sample_grid
+from nrt.physics.volume import GridExtinction, at_cell_centres, resample_cells, sample_grid
 
 
 class Voxels:
     """Properties composed on cells: ``stacked`` (R, R, R, C + 3 [+ 1]) holds sigma_t (C = 3,
     or 1 when grey), the RGB albedo and, for a g field, g; ``g_shared`` a scalar or None.
     Callable like a :class:`~nrt.modules.fields.medium.Medium` (``voxels(x)`` ->
-    :class:`MediumProperties`); :meth:`sigma_t` reads only the extinction."""
+    :class:`MediumProperties`); :attr:`sigma_t` reads only the extinction."""
 
     def __init__(self, stacked: torch.Tensor, channels: int, phase: str,
                  g_shared: torch.Tensor | None, bbox: torch.Tensor):
         self.stacked, self.channels, self.phase = stacked, channels, phase
         self.extinction = stacked[..., :channels].contiguous()
         self.g_shared, self.bbox = g_shared, bbox
+        self.sigma_t = GridExtinction(self.extinction, bbox)
+        """The extinction alone: ``sigma_t(x (..., 3)) -> (..., C)``, marched fused by
+        :func:`~nrt.physics.volume.optical_depth`."""
 
     def detached(self) -> Voxels:
         """The same voxels without gradient (targets and caches computed from them)."""
@@ -69,10 +72,6 @@ class Voxels:
                  for value, copy in ((self.stacked, leaf.stacked), (self.g_shared, leaf.g_shared))
                  if copy is not None and copy.grad is not None and value.requires_grad]
         return torch.stack(terms).sum() if terms else None
-
-    def sigma_t(self, x: torch.Tensor) -> torch.Tensor:
-        with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
-            return sample_grid(self.extinction, x, self.bbox)
 
     def __call__(self, x: torch.Tensor) -> MediumProperties:
         with record_function("nrt/medium"):

@@ -1,8 +1,9 @@
 // Fused CPU kernels of sample_grid (nrt/physics/volume.py): the trilinear, cell-centred,
 // edge-clamped lookup of a channels-last grid (Nz, Ny, Nx, C) at world points, and its
 // gradient with respect to the grid, in one pass each instead of the PyTorch path's
-// normalise / permute / grid_sample / transpose chain. Built at first use by
-// nrt/physics/fused_lookup.py.
+// normalise / permute / grid_sample / transpose chain; and optical_depth's march (every
+// stratum of a ray looked up and averaged, the points and their values never stored), with
+// its gradient. Built at first use by nrt/physics/fused_lookup.py.
 //
 // The forward's arithmetic is the PyTorch path's, operation by operation, in the points'
 // dtype: u = (p - lo) / (hi - lo) * 2 - 1 per axis; grid_sample's source index with
@@ -17,6 +18,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <vector>
 
 namespace {
 
@@ -169,9 +171,144 @@ at::Tensor backward(const at::Tensor& grad, const at::Tensor& points, const at::
   return total;
 }
 
+// optical_depth (nrt/physics/volume.py) through a grid: for each ray (o, d, t0, length,
+// offset) the mean over s < S of the lookup at o + (t0 + length (s + offset) / S) d, times
+// length. The points are formed with the PyTorch path's arithmetic (frac, t, then o + t d
+// per axis), so each lookup is grid_sample's; the strata are summed in order.
+template <typename scalar_t>
+struct Rays {
+  const scalar_t *o, *d, *t0, *length, *offset;
+  int64_t strata;
+  inline void point(int64_t r, int64_t s, scalar_t* p) const {
+    const scalar_t frac = (static_cast<scalar_t>(s) + offset[r]) / static_cast<scalar_t>(strata);
+    const scalar_t t = t0[r] + length[r] * frac;
+    for (int a = 0; a < 3; ++a) p[a] = o[3 * r + a] + t * d[3 * r + a];
+  }
+};
+
+int64_t check_rays(const at::Tensor& origins, const at::Tensor& dirs, const at::Tensor& t0,
+                   const at::Tensor& length, const at::Tensor& offset, int64_t strata) {
+  const int64_t n = origins.size(0);
+  TORCH_CHECK(dirs.device().is_cpu() && dirs.is_contiguous() && dirs.sizes() == origins.sizes() &&
+                  dirs.scalar_type() == origins.scalar_type(),
+              "optical_depth fused: the directions must be a contiguous CPU tensor like the "
+              "origins (N, 3)");
+  for (const at::Tensor* t : {&t0, &length, &offset}) {
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous() && t->dim() == 1 &&
+                    t->size(0) == n && t->scalar_type() == origins.scalar_type(),
+                "optical_depth fused: t0, length and offset must be contiguous CPU tensors "
+                "(N,) of the origins' dtype");
+  }
+  TORCH_CHECK(strata > 0, "optical_depth fused: at least one stratum per ray");
+  return n;
+}
+
+template <typename scalar_t>
+Rays<scalar_t> rays_of(const at::Tensor& origins, const at::Tensor& dirs, const at::Tensor& t0,
+                       const at::Tensor& length, const at::Tensor& offset, int64_t strata) {
+  return Rays<scalar_t>{origins.data_ptr<scalar_t>(), dirs.data_ptr<scalar_t>(),
+                        t0.data_ptr<scalar_t>(), length.data_ptr<scalar_t>(),
+                        offset.data_ptr<scalar_t>(), strata};
+}
+
+// (Nz, Ny, Nx, C) grid, (N, 3) origins and directions, (N,) t0, length and offset, (2, 3)
+// box -> (N, C). Parallel over rays: each task writes its own rows.
+at::Tensor march_forward(const at::Tensor& grid, const at::Tensor& origins,
+                         const at::Tensor& dirs, const at::Tensor& t0, const at::Tensor& length,
+                         const at::Tensor& offset, const at::Tensor& bbox, int64_t strata) {
+  const Shape s = check(grid, origins, bbox);
+  const int64_t n = check_rays(origins, dirs, t0, length, offset, strata), c = s.channels;
+  at::Tensor out = at::empty({n, c}, grid.options());
+  AT_DISPATCH_FLOATING_TYPES(grid.scalar_type(), "grid_march_forward", [&] {
+    const scalar_t* g = grid.data_ptr<scalar_t>();
+    const Rays<scalar_t> rays = rays_of<scalar_t>(origins, dirs, t0, length, offset, strata);
+    const Box<scalar_t> box(bbox);
+    scalar_t* op = out.data_ptr<scalar_t>();
+    const int64_t grain = std::max<int64_t>(1, kPointGrain / strata);
+    at::parallel_for(0, n, grain, [&](int64_t begin, int64_t end) {
+      Corners<scalar_t> k;
+      scalar_t p[3];
+      std::vector<scalar_t> sum(c), value(c);
+      for (int64_t r = begin; r < end; ++r) {
+        std::fill(sum.begin(), sum.end(), scalar_t(0));
+        for (int64_t st = 0; st < strata; ++st) {
+          rays.point(r, st, p);
+          locate(p, box, s.size, k);
+          std::fill(value.begin(), value.end(), scalar_t(0));
+          for (int corner = 0; corner < 8; ++corner) {
+            if (k.cell[corner] < 0) continue;
+            const scalar_t* v = g + k.cell[corner] * c;
+            for (int64_t ch = 0; ch < c; ++ch) value[ch] += v[ch] * k.weight[corner];
+          }
+          for (int64_t ch = 0; ch < c; ++ch) sum[ch] += value[ch];
+        }
+        scalar_t* o = op + r * c;
+        for (int64_t ch = 0; ch < c; ++ch)
+          o[ch] = sum[ch] / static_cast<scalar_t>(strata) * rays.length[r];
+      }
+    });
+  });
+  return out;
+}
+
+// d loss / d grid from d loss / d depth (N, C): each stratum's lookup receives
+// grad * length / S, scattered as the lookup's backward does (a fixed number of parts by the
+// sizes alone, each summed in order, then the partials in order).
+at::Tensor march_backward(const at::Tensor& grad, const at::Tensor& origins,
+                          const at::Tensor& dirs, const at::Tensor& t0, const at::Tensor& length,
+                          const at::Tensor& offset, const at::Tensor& bbox, int64_t strata,
+                          at::IntArrayRef grid_shape) {
+  TORCH_CHECK(grid_shape.size() == 4, "optical_depth fused: the grid's shape is (Nz, Ny, Nx, C)");
+  const int64_t cells = grid_shape[0] * grid_shape[1] * grid_shape[2], c = grid_shape[3];
+  const Shape s{{grid_shape[2], grid_shape[1], grid_shape[0]}, c};
+  check(at::empty({0, 0, 0, c}, grad.options()), origins, bbox);
+  const int64_t n = check_rays(origins, dirs, t0, length, offset, strata);
+  TORCH_CHECK(grad.device().is_cpu() && grad.is_contiguous() && grad.dim() == 2 &&
+                  grad.size(0) == n && grad.size(1) == c,
+              "optical_depth fused: the gradient must be a contiguous CPU tensor (N, C)");
+  const int64_t parts = parts_for(n * strata, cells * c);
+  at::Tensor partial = at::zeros({parts, grid_shape[0], grid_shape[1], grid_shape[2], c},
+                                 grad.options());
+  AT_DISPATCH_FLOATING_TYPES(grad.scalar_type(), "grid_march_backward", [&] {
+    const scalar_t* gp = grad.data_ptr<scalar_t>();
+    const Rays<scalar_t> rays = rays_of<scalar_t>(origins, dirs, t0, length, offset, strata);
+    const Box<scalar_t> box(bbox);
+    scalar_t* out = partial.data_ptr<scalar_t>();
+    at::parallel_for(0, parts, 1, [&](int64_t begin, int64_t end) {
+      Corners<scalar_t> k;
+      scalar_t p[3];
+      std::vector<scalar_t> each(c);
+      for (int64_t part = begin; part < end; ++part) {
+        scalar_t* dst = out + part * cells * c;
+        const int64_t first = n * part / parts, last = n * (part + 1) / parts;
+        for (int64_t r = first; r < last; ++r) {
+          for (int64_t ch = 0; ch < c; ++ch)
+            each[ch] = gp[r * c + ch] * rays.length[r] / static_cast<scalar_t>(strata);
+          for (int64_t st = 0; st < strata; ++st) {
+            rays.point(r, st, p);
+            locate(p, box, s.size, k);
+            for (int corner = 0; corner < 8; ++corner) {
+              if (k.cell[corner] < 0) continue;
+              scalar_t* row = dst + k.cell[corner] * c;
+              for (int64_t ch = 0; ch < c; ++ch) row[ch] += each[ch] * k.weight[corner];
+            }
+          }
+        }
+      }
+    });
+  });
+  if (parts == 1) return partial[0];
+  at::Tensor total = partial[0].clone();
+  for (int64_t part = 1; part < parts; ++part) total.add_(partial[part]);
+  return total;
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("forward", &forward, "sample_grid's lookup of points (P, 3)");
   m.def("backward", &backward, "sample_grid's gradient with respect to the grid");
+  m.def("march_forward", &march_forward, "optical_depth's march through a grid");
+  m.def("march_backward", &march_backward,
+        "optical_depth's march: the gradient with respect to the grid");
 }
