@@ -152,8 +152,8 @@ def test_without_a_compiler_one_warning_and_the_pytorch_path(monkeypatch, tmp_pa
     assert "PyTorch path" in caplog.text and "no C++ compiler" in fused_hash_grid.unavailable()
 
 
-def test_the_density_field_config_has_the_switch_off():
+def test_the_density_field_config_has_the_switch_on_and_the_class_off():
     cfg = OmegaConf.load(CONFIG_DIR / "model" / "density_field" / "hash_grid.yaml")
-    assert cfg.hash_grid.fused is False
+    assert cfg.hash_grid.fused is True
     assert not EAField(hash_grid={"levels": 2, "log2_table_size": 8}).encoding.fused
     assert EAField(hash_grid={"levels": 2, "log2_table_size": 8, "fused": True}).encoding.fused
