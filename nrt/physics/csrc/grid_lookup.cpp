@@ -69,6 +69,34 @@ inline void locate(const scalar_t* p, const Box<scalar_t>& box, const int64_t* s
   }
 }
 
+// out[ch] += the corners' values times their weights, the corners in grid_sample's order.
+template <typename scalar_t>
+inline void gather(const Corners<scalar_t>& k, const scalar_t* grid, int64_t c, scalar_t* out) {
+  for (int corner = 0; corner < 8; ++corner) {
+    if (k.cell[corner] < 0) continue;
+    const scalar_t* v = grid + k.cell[corner] * c;
+    for (int64_t ch = 0; ch < c; ++ch) out[ch] += v[ch] * k.weight[corner];
+  }
+}
+
+// Each corner's row of dst += g times its weight (the lookup's backward for one point).
+template <typename scalar_t>
+inline void scatter(const Corners<scalar_t>& k, const scalar_t* g, int64_t c, scalar_t* dst) {
+  for (int corner = 0; corner < 8; ++corner) {
+    if (k.cell[corner] < 0) continue;
+    scalar_t* row = dst + k.cell[corner] * c;
+    for (int64_t ch = 0; ch < c; ++ch) row[ch] += g[ch] * k.weight[corner];
+  }
+}
+
+// The sum of the partial gradients (parts, ...), in order.
+at::Tensor sum_parts(const at::Tensor& partial, int64_t parts) {
+  if (parts == 1) return partial[0];
+  at::Tensor total = partial[0].clone();
+  for (int64_t part = 1; part < parts; ++part) total.add_(partial[part]);
+  return total;
+}
+
 struct Shape {  // the grid's cells per axis, x first, and its channels
   int64_t size[3];
   int64_t channels;
@@ -106,11 +134,7 @@ at::Tensor forward(const at::Tensor& grid, const at::Tensor& points, const at::T
         locate(pp + 3 * p, box, s.size, k);
         scalar_t* o = op + p * c;
         for (int64_t ch = 0; ch < c; ++ch) o[ch] = scalar_t(0);
-        for (int corner = 0; corner < 8; ++corner) {
-          if (k.cell[corner] < 0) continue;
-          const scalar_t* v = g + k.cell[corner] * c;
-          for (int64_t ch = 0; ch < c; ++ch) o[ch] += v[ch] * k.weight[corner];
-        }
+        gather(k, g, c, o);
       }
     });
   });
@@ -155,20 +179,12 @@ at::Tensor backward(const at::Tensor& grad, const at::Tensor& points, const at::
         const int64_t first = n * part / parts, last = n * (part + 1) / parts;
         for (int64_t p = first; p < last; ++p) {
           locate(pp + 3 * p, box, s.size, k);
-          const scalar_t* g = gp + p * c;
-          for (int corner = 0; corner < 8; ++corner) {
-            if (k.cell[corner] < 0) continue;
-            scalar_t* row = dst + k.cell[corner] * c;
-            for (int64_t ch = 0; ch < c; ++ch) row[ch] += g[ch] * k.weight[corner];
-          }
+          scatter(k, gp + p * c, c, dst);
         }
       }
     });
   });
-  if (parts == 1) return partial[0];
-  at::Tensor total = partial[0].clone();
-  for (int64_t part = 1; part < parts; ++part) total.add_(partial[part]);
-  return total;
+  return sum_parts(partial, parts);
 }
 
 // optical_depth (nrt/physics/volume.py) through a grid: for each ray (o, d, t0, length,
@@ -235,11 +251,7 @@ at::Tensor march_forward(const at::Tensor& grid, const at::Tensor& origins,
           rays.point(r, st, p);
           locate(p, box, s.size, k);
           std::fill(value.begin(), value.end(), scalar_t(0));
-          for (int corner = 0; corner < 8; ++corner) {
-            if (k.cell[corner] < 0) continue;
-            const scalar_t* v = g + k.cell[corner] * c;
-            for (int64_t ch = 0; ch < c; ++ch) value[ch] += v[ch] * k.weight[corner];
-          }
+          gather(k, g, c, value.data());
           for (int64_t ch = 0; ch < c; ++ch) sum[ch] += value[ch];
         }
         scalar_t* o = op + r * c;
@@ -287,20 +299,13 @@ at::Tensor march_backward(const at::Tensor& grad, const at::Tensor& origins,
           for (int64_t st = 0; st < strata; ++st) {
             rays.point(r, st, p);
             locate(p, box, s.size, k);
-            for (int corner = 0; corner < 8; ++corner) {
-              if (k.cell[corner] < 0) continue;
-              scalar_t* row = dst + k.cell[corner] * c;
-              for (int64_t ch = 0; ch < c; ++ch) row[ch] += each[ch] * k.weight[corner];
-            }
+            scatter(k, each.data(), c, dst);
           }
         }
       }
     });
   });
-  if (parts == 1) return partial[0];
-  at::Tensor total = partial[0].clone();
-  for (int64_t part = 1; part < parts; ++part) total.add_(partial[part]);
-  return total;
+  return sum_parts(partial, parts);
 }
 
 }  // namespace
