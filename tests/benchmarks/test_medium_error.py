@@ -79,6 +79,7 @@ def test_gaussian_blur_keeps_constants_and_mass_and_spreads_by_sigma() -> None:
             assert np.isclose((profile * offsets ** 2).sum(), sigma ** 2, rtol=0.03)
 
 
+@pytest.mark.slow  # 7-10 s: the benchmark run as a command
 def test_the_mean_row_averages_the_runs_cell_by_cell(tmp_path) -> None:
     """Two runs off the truth by +e and -e each score mean(e^2); their mean is the truth
     (MSE 0): the command line reads the runs' exports and the dataset's ground truth."""
@@ -119,6 +120,7 @@ def test_a_scene_s_truth_from_its_spec_is_the_rendered_dataset_s(tiny_dataset) -
         assert np.array_equal(np.float32(from_spec[name]), np.float32(grid)), name
 
 
+@pytest.mark.slow  # 7-10 s: the benchmark run as a command
 def test_floors_of_a_scene_need_no_run(tmp_path) -> None:
     """The truth on R^3 cells and back: a finer grid loses less (the default scene, tiny)."""
     proc = subprocess.run([sys.executable, "-m", "benchmarks.medium_error", "--scene", "default",

@@ -210,6 +210,7 @@ def _provenance(weights: str, gflops: float) -> dict:
             "machine": {"before": speed, "after": speed}}
 
 
+@pytest.mark.slow  # 6 s: the figure drawn
 def test_the_comparison_is_redrawn_from_its_recorded_data_alone(tmp_path):
     """``fair_comparison redraw`` needs only the committed CSV and JSON files: the table
     gives mean and sample sd over realisations (one of them photos of the scalar variant),
