@@ -291,3 +291,17 @@ def test_a_gradient_with_respect_to_the_rays_or_a_medium_of_another_kind_takes_t
     g = grid.clone().requires_grad_(True)
     plain = optical_depth(lambda p: GridExtinction(g, BOX.double())(p), x, d.detach(), t0, t1, 8)
     assert not computed_by(plain, "FusedMarch") and computed_by(plain, "FusedLookup")
+
+
+def test_without_a_compiler_the_march_takes_the_pytorch_path(monkeypatch, tmp_path, fused):
+    monkeypatch.setattr(fused_lookup, "EXTENSION", LazyExtension(  # not built yet here
+        fused_lookup.EXTENSION.name, fused_lookup.EXTENSION.sources, "fused_lookups",
+        fused_lookup.log))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)
+    grid = torch.rand(4, 4, 4, 2, requires_grad=True)
+    x, d, t0, t1 = rays(10, 4, torch.float32)
+    depth = optical_depth(GridExtinction(grid, BOX), x, d, t0, t1, 8)
+    assert not computed_by(depth, "FusedMarch") and not computed_by(depth, "FusedLookup")
+    fused_lookup.use_fused_lookups(False)
+    assert torch.equal(depth, optical_depth(GridExtinction(grid, BOX), x, d, t0, t1, 8))
