@@ -71,6 +71,7 @@ def _image_set(n: int = 6, size: int = 96) -> torch.Tensor:
     return torch.from_numpy(np.stack(imgs)).float().permute(0, 2, 3, 1)
 
 
+@pytest.mark.slow  # 6 s: Inception over two image sets
 @needs_weights
 def test_fid_of_a_set_against_itself_is_zero_and_against_a_changed_set_larger():
     images = _image_set()
