@@ -455,9 +455,10 @@ class CompileHotCode(L.Callback):
 
 class FusedLookups(L.Callback):
     """With ``enabled`` (``fused_lookups=true``), the grid lookups of the run
-    (:func:`~nrt.physics.volume.sample_grid`) take the fused CPU kernels where they apply
-    (:mod:`nrt.physics.fused_lookup`: the same values, the grid's gradient summed in another
-    order), from setup to teardown (or an error)."""
+    (:func:`~nrt.physics.volume.sample_grid`) and of the environment maps take the fused CPU
+    kernels where they apply (:mod:`nrt.physics.fused_lookup`: the same values, the grid's
+    gradient summed in another order; :mod:`nrt.physics.fused_envmap`), from setup to
+    teardown (or an error)."""
 
     def __init__(self, enabled: bool = False):
         self.enabled = bool(enabled)

@@ -29,7 +29,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import CONFIG_DIR, register_resolvers
-from nrt.compile import EXTENSIONS_DIR_ENV, extensions_dir
+from nrt.compile import EXTENSIONS_DIR_ENV, LazyExtension, extensions_dir
 from nrt.data.render import ensure_dataset
 
 # The fused C++ kernels (on by default) are built once per machine and shared by the tests and
@@ -400,3 +400,21 @@ def computed_by(out: torch.Tensor, node: str) -> bool:
         todo += [n for n, _ in fn.next_functions]
     return False
 
+
+def built_or_skip(extension: LazyExtension):
+    """The built C++ extension (built once per machine, then cached), or a skip saying why it
+    cannot be built."""
+    module = extension.get()
+    if module is None:
+        pytest.skip(f"{extension.what} cannot be built: {extension.unavailable()}")
+    return module
+
+
+def without_compiler(monkeypatch, tmp_path: Path, owner) -> None:
+    """``owner.EXTENSION`` replaced by an unbuilt copy of itself, and no C++ compiler on the
+    PATH (nor ``CXX``): the next use tries to build it and fails."""
+    ext = owner.EXTENSION
+    monkeypatch.setattr(owner, "EXTENSION", LazyExtension(ext.name, ext.sources, ext.what,
+                                                          ext.log))
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)

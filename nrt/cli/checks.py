@@ -131,8 +131,9 @@ OPTIONS: dict[str, tuple[str, Callable[[object], bool]]] = {
                 lambda v: v is None or _is_count(v, 1)),
     "compile": ("true or false (torch.compile of each stage's hot code, nrt/compile.py)",
                 lambda v: isinstance(v, bool)),
-    "fused_lookups": ("true or false (the grid lookups by fused C++ kernels on the CPU, "
-                      "nrt/physics/fused_lookup.py)", lambda v: isinstance(v, bool)),
+    "fused_lookups": ("true or false (the grid and environment-map lookups by fused C++ "
+                      "kernels on the CPU, nrt/physics/fused_lookup.py, fused_envmap.py)",
+                      lambda v: isinstance(v, bool)),
 }
 """The scalar options of the root configs, what each must be, and the test of it."""
 

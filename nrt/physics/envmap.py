@@ -19,6 +19,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from nrt.physics.fused_envmap import fused_env_lookup, fused_env_pdf, fused_env_sample
 from nrt.physics.tonemap import luminance
 
 
@@ -66,7 +67,11 @@ class EnvironmentMap:
         return EnvironmentMap(self.radiance.to(*args, **kwargs))
 
     def lookup(self, d: torch.Tensor) -> torch.Tensor:
-        """Radiance ``E(d)`` (..., 3) seen looking along unit directions ``d`` (..., 3)."""
+        """Radiance ``E(d)`` (..., 3) seen looking along unit directions ``d`` (..., 3), in
+        the map's dtype (with ``fused_lookups``, one C++ pass: :mod:`nrt.physics.fused_envmap`)."""
+        fused = fused_env_lookup(self.radiance, d)
+        if fused is not None:
+            return fused
         h, w = self.height, self.width
         u, v = direction_to_uv(d.to(self.radiance.dtype))
         x = u - 0.5 / w
@@ -90,7 +95,8 @@ class EnvironmentDirectionSampler:
     ``[i, i + 1) / W``; row ``j`` the polar band between its neighbours' midpoints, clipped
     at the poles). A cell is drawn with probability ``(lum(E_ij) + floor) * Omega_ij``,
     then a direction uniform in solid angle inside it, so :meth:`pdf` (per steradian) is
-    the cell's probability over its solid angle. A cell's luminance is the largest of its
+    the cell's probability over its solid angle (a cell is drawn by inverting the cells'
+    cumulative probabilities at a uniform number). A cell's luminance is the largest of its
     texel's 3 x 3 neighbours (the bilinear lookup spreads a bright texel into the cells
     beside it, which would otherwise be drawn too rarely). The small floor (``floor_fraction`` of
     the mean luminance) keeps every direction reachable, as multiple importance sampling
@@ -108,20 +114,32 @@ class EnvironmentDirectionSampler:
         lum = F.max_pool2d(F.pad(wrapped, (0, 0, 1, 1), mode="replicate"), 3, 1)[0, 0]
         weights = (lum + floor_fraction * lum.mean().clamp_min(1e-30)) * solid
         self.probs = (weights / weights.sum()).flatten()
+        self.cdf = torch.cumsum(self.probs, 0)
         self.density = (self.probs.reshape(h, w) / solid).float()  # per steradian
         self.height, self.width = h, w
 
     def sample(self, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
-        """``n`` unit look directions (n, 3), float32 on the CPU."""
-        idx = torch.multinomial(self.probs, n, replacement=True, generator=generator)
+        """``n`` unit look directions (n, 3), float32 on the CPU, from ``n`` x 3 uniform
+        numbers: the cell (the first whose cumulative probability exceeds the first), the
+        polar and the azimuthal position in it (with ``fused_lookups``, one C++ pass)."""
+        xi = torch.rand(n, 3, dtype=torch.float64, generator=generator)
+        fused = fused_env_sample(self.cdf, self.cos_top, self.cos_bottom, self.width, xi)
+        if fused is not None:
+            return fused
+        idx = torch.searchsorted(self.cdf, xi[:, 0].contiguous(), right=True)
+        idx = idx.clamp_max(len(self.cdf) - 1)
         row, col = idx // self.width, idx % self.width
-        xi = torch.rand(n, 2, dtype=torch.float64, generator=generator)
-        cos = self.cos_top[row] + xi[:, 0] * (self.cos_bottom[row] - self.cos_top[row])
-        u = (col + xi[:, 1]) / self.width
-        return uv_to_direction(u, torch.acos(cos.clamp(-1.0, 1.0)) / torch.pi).float()
+        cos = self.cos_top[row] + xi[:, 1] * (self.cos_bottom[row] - self.cos_top[row])
+        cos = cos.clamp(-1.0, 1.0)
+        sin = (1 - cos * cos).clamp_min(0.0).sqrt()
+        phi = (col + xi[:, 2]) * (2 * math.pi / self.width)
+        return torch.stack((sin * torch.sin(phi), cos, -sin * torch.cos(phi)), -1).float()
 
     def pdf(self, d: torch.Tensor) -> torch.Tensor:
         """Density per steradian (...,) of drawing the unit look directions ``d`` (..., 3)."""
+        fused = fused_env_pdf(self.density, d)
+        if fused is not None:
+            return fused
         u, v = direction_to_uv(d)
         col = (u * self.width).long().clamp(0, self.width - 1)
         row = torch.round(v * (self.height - 1)).long().clamp(0, self.height - 1)

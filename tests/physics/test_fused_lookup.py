@@ -29,10 +29,9 @@ import pytest
 import torch
 
 from nrt.callbacks import FusedLookups
-from nrt.compile import LazyExtension
 from nrt.physics import fused_lookup
 from nrt.physics.volume import GridExtinction, optical_depth, ray_box_intersect, sample_grid
-from tests.conftest import computed_by
+from tests.conftest import built_or_skip, computed_by, without_compiler
 
 pytestmark = pytest.mark.unit
 
@@ -42,11 +41,8 @@ BOX = torch.tensor([[-1.0, -0.5, -2.0], [1.0, 1.5, 0.0]])
 
 @pytest.fixture(scope="module")
 def ext():
-    """The extension (built once per machine, then cached), or a skip saying why not."""
-    module = fused_lookup.EXTENSION.get()
-    if module is None:
-        pytest.skip(f"the fused lookup cannot be built: {fused_lookup.EXTENSION.unavailable()}")
-    return module
+    """The extension, or a skip saying why not."""
+    return built_or_skip(fused_lookup.EXTENSION)
 
 
 @pytest.fixture()
@@ -179,11 +175,7 @@ def test_off_by_default_and_the_callback_switches_it_for_the_run():
 
 def test_without_a_compiler_one_warning_and_the_pytorch_path(monkeypatch, tmp_path, caplog,
                                                               fused):
-    monkeypatch.setattr(fused_lookup, "EXTENSION", LazyExtension(  # not built yet here
-        fused_lookup.EXTENSION.name, fused_lookup.EXTENSION.sources, "fused_lookups",
-        fused_lookup.log))
-    monkeypatch.setenv("PATH", str(tmp_path))
-    monkeypatch.delenv("CXX", raising=False)
+    without_compiler(monkeypatch, tmp_path, fused_lookup)
     grid, x = torch.randn(4, 4, 4, 2), points(64, torch.float32)
     with caplog.at_level(logging.WARNING, logger=fused_lookup.__name__):
         first, second = sample_grid(grid, x, BOX), sample_grid(grid, x, BOX)
@@ -294,11 +286,7 @@ def test_a_gradient_with_respect_to_the_rays_or_a_medium_of_another_kind_takes_t
 
 
 def test_without_a_compiler_the_march_takes_the_pytorch_path(monkeypatch, tmp_path, fused):
-    monkeypatch.setattr(fused_lookup, "EXTENSION", LazyExtension(  # not built yet here
-        fused_lookup.EXTENSION.name, fused_lookup.EXTENSION.sources, "fused_lookups",
-        fused_lookup.log))
-    monkeypatch.setenv("PATH", str(tmp_path))
-    monkeypatch.delenv("CXX", raising=False)
+    without_compiler(monkeypatch, tmp_path, fused_lookup)
     grid = torch.rand(4, 4, 4, 2, requires_grad=True)
     x, d, t0, t1 = rays(10, 4, torch.float32)
     depth = optical_depth(GridExtinction(grid, BOX), x, d, t0, t1, 8)

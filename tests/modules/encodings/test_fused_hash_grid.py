@@ -18,11 +18,10 @@ import torch
 from omegaconf import OmegaConf
 
 from nrt.cli.common import CONFIG_DIR
-from nrt.compile import LazyExtension
 from nrt.modules.encodings import fused_hash_grid
 from nrt.modules.encodings.hash_grid import HashGrid
 from nrt.modules.fields.ea_field import EAField
-from tests.conftest import computed_by
+from tests.conftest import built_or_skip, computed_by, without_compiler
 
 pytestmark = pytest.mark.unit
 
@@ -34,11 +33,8 @@ GRIDS = {  # (levels, log2 table, base resolution, growth): all dense; dense the
 
 @pytest.fixture(scope="module")
 def ext():
-    """The extension (built once per machine, then cached), or a skip saying why not."""
-    module = fused_hash_grid.extension()
-    if module is None:
-        pytest.skip(f"the fused hash grid cannot be built here: {fused_hash_grid.unavailable()}")
-    return module
+    """The extension, or a skip saying why not."""
+    return built_or_skip(fused_hash_grid.EXTENSION)
 
 
 def grids(kind: str, dtype: torch.dtype) -> tuple[HashGrid, HashGrid]:
@@ -140,10 +136,7 @@ def test_the_profiler_scope_surrounds_the_fused_call(ext):
 
 
 def test_without_a_compiler_one_warning_and_the_pytorch_path(monkeypatch, tmp_path, caplog):
-    monkeypatch.setattr(fused_hash_grid, "EXTENSION", LazyExtension(  # not built yet here
-        fused_hash_grid.NAME, fused_hash_grid.SOURCES, "hash_grid.fused", fused_hash_grid.log))
-    monkeypatch.setenv("PATH", str(tmp_path))
-    monkeypatch.delenv("CXX", raising=False)
+    without_compiler(monkeypatch, tmp_path, fused_hash_grid)
     plain, fused = grids("hashed", torch.float32)
     x = points(64, torch.float32)
     with caplog.at_level(logging.WARNING, logger=fused_hash_grid.__name__):
