@@ -20,6 +20,8 @@ differently, so there chance separates a pair by more than float rounding. All a
 steps, the training seconds and the commit; the runs go under ``<output dir>/equal``
 (datasets from the shared cache). A kernel changes only the order of float sums, so what
 separates a pair is chance; the seed spread of one side is the scale to judge them by.
+``--sides on`` runs the fused side alone: a later change of the kernels, at the same seeds
+and from the same EA checkpoints, set against the rows already in the table.
 """
 
 from __future__ import annotations
@@ -60,7 +62,11 @@ def main() -> None:
     parser.add_argument("--seeds", default="0", help="training seeds, comma-separated")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--table", type=Path, help="default: the kernel's table")
+    parser.add_argument("--sides", default="off,on",
+                        help="which runs of a pair: off, on or both (a later change of the "
+                             "fused side measured against the off runs already in the table)")
     args = parser.parse_args()
+    sides = [{"off": False, "on": True}[side] for side in args.sides.split(",")]
     stage, switches, default_table, keep = KERNELS[args.kernel]
     table_path = args.table or Path(default_table)
     columns = ["scene", "preset", "seed", "fused", "steps", "train_s", *keep, "code"]
@@ -76,7 +82,7 @@ def main() -> None:
             start = ([f"init.ea_ckpt={ea_checkpoint(scene, args.preset)}"]
                      if stage == "rte" else [])
             for seed in (int(s) for s in args.seeds.split(",")):
-                for fused in (False, True):
+                for fused in sides:
                     run, _ = train(stage, out, args.preset, [
                         *SCENES[scene], *start, f"seed={seed}",
                         *(f"{switch}={str(fused).lower()}" for switch in switches)])
