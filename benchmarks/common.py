@@ -71,13 +71,16 @@ def run_cli(command: str, args: list[str], out: Path) -> float:
 
 
 def train(stage: str, out: Path, preset: str, overrides: list[str],
-          logger: str = "[tensorboard,csv]", resume: Path | None = None) -> tuple[Path, float]:
+          logger: str = "[tensorboard,csv]", resume: Path | None = None,
+          data_dir: Path | None = None) -> tuple[Path, float]:
     """``nrt-train stage=<stage> preset=<preset>`` through the CLI, runs under ``out``, the
-    datasets from the shared cache (:func:`output_dir`); the new run folder (with ``resume``,
-    a run folder under ``out``: that run continued in place) and the wall seconds."""
+    datasets from ``data_dir`` (default: the shared cache of :func:`output_dir`); the new run
+    folder (with ``resume``, a run folder under ``out``: that run continued in place) and the
+    wall seconds."""
     before = set(out.glob(f"*/{stage}/*"))
+    data_dir = output_dir() / "datasets" if data_dir is None else data_dir
     wall = run_cli("train", [f"stage={stage}", f"preset={preset}", f"logger={logger}",
-                             f"paths.data_dir={output_dir() / 'datasets'}",
+                             f"paths.data_dir={data_dir}",
                              "trainer.enable_progress_bar=false", "render.progress=false",
                              *overrides,
                              *((f"resume={resume / LAST_CKPT}",) if resume else ())], out)
@@ -132,6 +135,15 @@ def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None,
     run = train("ea", output_dir(), preset, [*overrides, *steps],
                 resume=killed[0] if killed else None)[0]
     return (run / LAST_CKPT).resolve()
+
+
+def run_finals(run: Path, keep: dict[str, str]) -> dict:
+    """A finished run's steps, training seconds and the final metrics ``keep`` (column ->
+    metric key; a metric the run did not log is left out), from its ``run.json``."""
+    info = read_run_info(run)
+    final = info["final_metrics"]
+    return {"steps": info["finished_step"], "train_s": round(final["time/wall_s"], 1),
+            **{column: round(final[key], 4) for column, key in keep.items() if key in final}}
 
 
 def commit_of(code: Path) -> str:

@@ -30,8 +30,7 @@ import argparse
 import csv
 from pathlib import Path
 
-from benchmarks.common import SCENES, commit_of, ea_checkpoint, output_dir, train
-from nrt.run_dirs import read_run_info
+from benchmarks.common import SCENES, commit_of, ea_checkpoint, output_dir, run_finals, train
 
 RTE_KEPT = {"psnr_heldout": "val/psnr", "mse_sigma_a_x100": "val/mse_sigma_a_x100",
             "mse_sigma_s_x100": "val/mse_sigma_s_x100", "mse_sigma_t_x100": "val/mse_sigma_t_x100"}
@@ -45,14 +44,6 @@ KERNELS = {  # name -> (stage, switches set together, table, final metrics kept:
     "rte_levers": ("rte", ("fused_lookups", "losses.samples.uncollided_shared"),
                    "docs/data/step_speed/rte_levers_equal.csv", RTE_KEPT),
 }
-
-
-def row(run: Path, keep: dict[str, str]) -> dict:
-    """The measured part of a finished run's row: steps, training seconds and ``keep``."""
-    info = read_run_info(run)
-    final = info["final_metrics"]
-    return {"steps": info["finished_step"], "train_s": round(final["time/wall_s"], 1),
-            **{column: round(final[key], 4) for column, key in keep.items()}}
 
 
 def main() -> None:
@@ -87,7 +78,7 @@ def main() -> None:
                         *SCENES[scene], *start, f"seed={seed}",
                         *(f"{switch}={str(fused).lower()}" for switch in switches)])
                     table.writerow({"scene": scene, "preset": args.preset, "seed": seed,
-                                    "fused": fused, **row(run, keep), "code": code})
+                                    "fused": fused, **run_finals(run, keep), "code": code})
                     f.flush()
                     print(f"{scene} seed {seed} {args.kernel}={fused}: {run}", flush=True)
 

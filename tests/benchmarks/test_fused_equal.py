@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 from omegaconf import OmegaConf
 
-from benchmarks.common import compose_train
-from benchmarks.fused_equal import KERNELS, row
+from benchmarks.common import compose_train, run_finals
+from benchmarks.fused_equal import KERNELS
 from nrt.run_dirs import write_run_info
 
 pytestmark = pytest.mark.unit
@@ -25,6 +25,6 @@ def test_a_row_holds_the_runs_steps_seconds_and_metrics(tmp_path):
     write_run_info(tmp_path, finished_step=1500, final_metrics={
         "time/wall_s": 193.398, "val/psnr": 33.83686, "val/density_corr": 0.92466,
         "val/density_rel_err": 0.36497, "train/loss": 0.001})
-    assert row(tmp_path, KERNELS["hash_grid"][3]) == {
+    assert run_finals(tmp_path, KERNELS["hash_grid"][3]) == {
         "steps": 1500, "train_s": 193.4, "psnr_heldout": 33.8369, "density_corr": 0.9247,
         "density_rel_err": 0.365}
