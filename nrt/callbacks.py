@@ -103,18 +103,27 @@ class WallClock(L.Callback, RunClock):
         self.elapsed_before = float(state_dict.get("elapsed", 0.0))
 
 
+def all_finite(t: torch.Tensor) -> bool:
+    """Whether ``t`` holds no NaN or Inf: its sum is finite (one pass, no mask), or, where
+    the sum overflows, every entry is."""
+    return bool(torch.isfinite(t.sum())) or bool(torch.isfinite(t).all())
+
+
 class NonFiniteGuard(L.Callback):
     """Keeps NaN and Inf out of the parameters.
 
     Non-finite gradient entries are zeroed before each optimizer step (and counted in
     ``guard/nonfinite_grads``); a parameter that still turns non-finite stops training
-    with an error naming it.
+    with an error naming it. A tensor whose sum is finite holds no NaN or Inf (either would
+    make the sum NaN or infinite), so one reduction without a mask clears it; only a sum
+    that is not finite (such entries, or finite ones that overflow) is looked at entry by
+    entry.
     """
 
     def on_before_optimizer_step(self, trainer, pl_module, optimizer) -> None:
         bad = 0
         for p in pl_module.parameters():
-            if p.grad is not None:
+            if p.grad is not None and not all_finite(p.grad):
                 mask = ~torch.isfinite(p.grad)
                 if mask.any():
                     bad += int(mask.sum())
@@ -126,7 +135,7 @@ class NonFiniteGuard(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         for name, p in pl_module.named_parameters():
-            if not torch.isfinite(p).all():
+            if not all_finite(p.detach()):
                 raise FloatingPointError(f"parameter '{name}' became non-finite at step "
                                          f"{trainer.global_step}")
 
