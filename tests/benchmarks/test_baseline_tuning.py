@@ -43,6 +43,7 @@ def test_a_malformed_hybrid_stops_before_training(stage, share, message):
         run_config(args, "default", Path("no.ckpt"), 60.0, {"then_dpt": share})
 
 
+@pytest.mark.slow  # 7-8 s: the benchmark run as a command
 def test_blind_scenes_are_refused():
     proc = subprocess.run([sys.executable, "-m", "benchmarks.baseline_tuning", "--stage", "rte",
                            "--scenes", "default,heldout2"], cwd=ROOT, capture_output=True,

@@ -27,12 +27,14 @@ def _benchmark(args: list[str], output_dir: Path) -> subprocess.CompletedProcess
                           env=env, capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.slow  # 4 s: the benchmark run as a command
 def test_a_folder_without_run_json_is_refused(tmp_path):
     proc = _benchmark(["--rte-run", str(tmp_path)], tmp_path)
     assert proc.returncode == 2
     assert "no run.json" in proc.stderr and str(tmp_path) in proc.stderr
 
 
+@pytest.mark.slow  # 4 s: the benchmark run as a command
 def test_a_scene_without_ea_checkpoint_is_refused_naming_the_fix(tmp_path):
     proc = _benchmark(["--scene", "heldout3", "--preset", "tiny"], tmp_path)
     assert proc.returncode == 2

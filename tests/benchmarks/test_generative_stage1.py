@@ -52,6 +52,7 @@ def test_the_summary_gives_mean_and_spread_per_configuration(tmp_path) -> None:
     assert lines[3] == "| latent_input | tiny | 1 | 0.870 ± 0.000 | 0.850 | 32.000 ± 0.000 |"
 
 
+@pytest.mark.slow  # 4 s: the benchmark run as a command
 def test_an_unknown_configuration_stops_before_training(tmp_path) -> None:
     proc = subprocess.run([sys.executable, "-m", "benchmarks.generative_stage1",
                            "--configs", "latent_inptu", "--table", str(tmp_path / "t.csv")],
