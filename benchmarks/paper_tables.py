@@ -74,15 +74,17 @@ def scene_overrides(set_name: str, phase: str, scene: dict) -> list[str]:
 
 def planned_runs(sets: dict, n: dict[str, int], ablation_scenes: int, ablations: list[str],
                  methods: list[str] | None = None) -> list[tuple[str, dict, str, list[str]]]:
-    """(set, scene, method, overrides) of every run, in order: each scene's methods (all of
-    the sets file's, or ``methods``), then the ablations of the first isotropic scenes."""
+    """(set, scene, method, overrides) of every run, in order, scene by scene: each scene's
+    methods (all of the sets file's, or ``methods``), then, on the first ``ablation_scenes``
+    isotropic scenes, its ablations, so that a scene's runs share the EA checkpoint of one
+    sitting (the records hash it)."""
     runs = []
     for set_name in ("iso", "aniso"):
-        for scene in sets["sets"][set_name]["scenes"][:n[set_name]]:
+        for i, scene in enumerate(sets["sets"][set_name]["scenes"][:n[set_name]]):
             runs += [(set_name, scene, m, o) for m, o in sets["methods"].items()
                      if methods is None or m in methods]
-    for scene in sets["sets"]["iso"]["scenes"][:min(ablation_scenes, n["iso"])]:
-        runs += [("iso", scene, a, sets["ablations"][a]) for a in ablations]
+            if set_name == "iso" and i < ablation_scenes:
+                runs += [(set_name, scene, a, sets["ablations"][a]) for a in ablations]
     return runs
 
 

@@ -18,7 +18,8 @@ A row per option, scene and seed in ``--table``: the photos' rendering seconds (
 wall time, once per preset and scene, into the benchmark's own dataset folder; kept in
 ``render_s.json`` there), each stage's training seconds and the sum, stage 1's held-out PSNR
 and density
-correlation, stage 2's property MSEs x100 and held-out PSNR, the run folders and the commit.
+correlation, stage 2's start (its first validated sigma_t MSE x100: the EA density's), its
+property MSEs x100 and held-out PSNR, the run folders and the commit.
 Rows already in the table are skipped, and a stage-1 run recorded there is reused by the
 options that share it, so a killed benchmark continues. Runs go under
 ``<output dir>/quickstart_spend`` (the table names them relative to it), its datasets in
@@ -32,7 +33,15 @@ import csv
 import json
 from pathlib import Path
 
-from benchmarks.common import SCENES, commit_of, output_dir, run_cli, run_finals, train
+from benchmarks.common import (
+    SCENES,
+    commit_of,
+    output_dir,
+    run_cli,
+    run_finals,
+    series,
+    train,
+)
 from nrt.run_dirs import LAST_CKPT
 
 EA_KEPT = {"ea_psnr": "val/psnr", "ea_density_corr": "val/density_corr"}
@@ -40,8 +49,8 @@ RTE_KEPT = {"psnr_heldout": "val/psnr", "mse_sigma_a_x100": "val/mse_sigma_a_x10
             "mse_sigma_s_x100": "val/mse_sigma_s_x100",
             "mse_sigma_t_x100": "val/mse_sigma_t_x100", "mse_g_x100": "val/mse_g_x100"}
 COLUMNS = ["option", "scene", "seed", "preset", "ea_steps", "rte_steps", "render_s",
-           "ea_train_s", "rte_train_s", "total_train_s", *EA_KEPT, *RTE_KEPT, "ea_over",
-           "ea_run", "rte_run", "code"]
+           "ea_train_s", "rte_train_s", "total_train_s", *EA_KEPT, "start_sigma_t_x100",
+           *RTE_KEPT, "ea_over", "ea_run", "rte_run", "code"]
 
 
 def options(preset: str, fine: str, rte_steps: int, ea_steps: int
@@ -110,16 +119,16 @@ def main() -> None:
                        "ea_train_s": ea["train_s"], "rte_train_s": rte["train_s"],
                        "total_train_s": round(ea["train_s"] + rte["train_s"], 1),
                        **{k: ea.get(k, "") for k in EA_KEPT},
+                       "start_sigma_t_x100": round(series(rte_run, RTE_KEPT[
+                           "mse_sigma_t_x100"])[0], 4),
                        **{k: rte.get(k, "") for k in RTE_KEPT}, "ea_over": " ".join(ea_over),
                        "ea_run": str(ea_run.relative_to(out)),
                        "rte_run": str(rte_run.relative_to(out)), "code": code}
-                new = not args.table.exists()
-                with args.table.open("a", newline="") as f:
-                    writer = csv.DictWriter(f, fieldnames=COLUMNS)
-                    if new:
-                        writer.writeheader()
-                    writer.writerow(row)
                 table.append({k: str(v) for k, v in row.items()})
+                with args.table.open("w", newline="") as f:  # older rows: new columns blank
+                    writer = csv.DictWriter(f, fieldnames=COLUMNS, restval="")
+                    writer.writeheader()
+                    writer.writerows(table)
                 print(f"{name} {scene} seed {seed}: stage 1 {ea['train_s']} s, stage 2 "
                       f"{rte['train_s']} s, sigma_t {rte.get('mse_sigma_t_x100')}", flush=True)
 

@@ -67,6 +67,8 @@ def test_every_planned_run_composes():
     ``nrt-train`` command line (composition as the CLI does it)."""
     runs = planned_runs(SETS, {"iso": 1, "aniso": 1}, 1, list(SETS["ablations"]))
     assert len(runs) == 2 * len(SETS["methods"]) + len(SETS["ablations"])
+    iso = len(SETS["methods"]) + len(SETS["ablations"])  # the ablated scene's runs come first
+    assert {r[0] for r in runs[:iso]} == {"iso"} and {r[0] for r in runs[iso:]} == {"aniso"}
     for set_name, scene, _, overrides in runs:
         phase = SETS["sets"][set_name]["phase"]
         cfg = compose_config("train", ["preset=cpu", *overrides,
