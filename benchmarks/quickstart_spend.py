@@ -1,6 +1,6 @@
-"""What the quickstart spends its minutes on: both stages as the README's quickstart runs them,
-against spending the time the speed-ups saved on more stage-2 steps, more stage-1 steps, or
-finer photos, per scene and seed.
+"""What the quickstart spends its minutes on: both stages as the quickstart ran them at
+``--preset`` (``cpu``), against spending the time the speed-ups saved on more stage-2 steps,
+more stage-1 steps, or finer photos, per scene and seed.
 
     python -m benchmarks.quickstart_spend [--options as_is,rte_steps,ea_steps,fine]
         [--scenes default,heldout2] [--seeds 0] [--rte-steps 2500] [--ea-steps 3000]
@@ -81,7 +81,7 @@ def main() -> None:
     parser.add_argument("--options", default="as_is,rte_steps,ea_steps,fine")
     parser.add_argument("--scenes", default="default,heldout2")
     parser.add_argument("--seeds", default="0")
-    parser.add_argument("--preset", default="cpu", help="the quickstart's preset")
+    parser.add_argument("--preset", default="cpu", help="the as_is options' preset")
     parser.add_argument("--fine-preset", default="cpu_fine", help="the option fine's preset")
     parser.add_argument("--rte-steps", type=int, default=2500)
     parser.add_argument("--ea-steps", type=int, default=3000)

@@ -1,4 +1,4 @@
-"""Stage 2 as the quickstart runs it, on several scenes: does the medium improve on its EA start?
+"""Stage 2 at the preset's defaults on several scenes: does the medium improve on its EA start?
 
 For each scene: the EA checkpoint (``--ea NAME=PATH``, else the newest EA run of that scene
 under ``outputs/``, else ``nrt-train stage=ea`` is run first), then ``nrt-train stage=rte``
