@@ -4,12 +4,16 @@ For each configuration (a name and its overrides, :data:`CONFIGS`) and seed,
 ``nrt-train stage=ea mode=generative scene=family`` at the preset, through the CLI; each
 member's density correlation with its truth at the last validation
 (``val/density_corr_member<k>``), their mean and minimum, the held-out PSNR and the training
-seconds go to ``--table`` (CSV), one row per run. A run whose (config, preset, seed) row
-exists is skipped, so a killed benchmark continues; ``--summary`` prints the mean and spread
-per configuration from the table alone.
+seconds go to ``--table`` (CSV), one row per run. The reference, configuration
+``single``: single-scene stage 1 on each member's own photos (``scene.path=<member folder>``,
+the family's training sky only, as the generative run sees them), one run per member, the
+members' correlations in the same row (PSNR: their mean; seconds: their sum). A run whose
+(config, preset, seed) row exists is skipped, so a killed benchmark continues;
+``--summary`` prints the mean and spread per configuration from the table alone.
 
     python -m benchmarks.generative_stage1 [--preset tiny] [--seeds 0,1,2]
-        [--configs default,latent_input] [--table docs/data/generative_stage1.csv] [--summary]
+        [--configs default,latent_input,single] [--table docs/data/generative_stage1.csv]
+        [--summary]
 """
 
 from __future__ import annotations
@@ -19,13 +23,15 @@ import csv
 import statistics
 from pathlib import Path
 
-from benchmarks.common import metric_rows, output_dir, train
+from benchmarks.common import compose_train, metric_rows, output_dir, train
+from nrt.data.family import ensure_family, load_family
 
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "docs" / "data" / "generative_stage1.csv"
 CONFIGS = {
     "default": [],
     "latent_input": ["mode.latent.input=true"],  # the density MLP reads z beside the features
+    "single": [],  # the reference: single-scene stage 1 on each member (single_row)
 }
 """The configurations measured, by name: their overrides of the generative defaults."""
 FIELDS = ("config", "preset", "seed", "corr_mean", "corr_min", "corr_members", "psnr",
@@ -51,6 +57,33 @@ def run_row(run: Path, config: str, preset: str, seed: int) -> dict:
             "corr_members": ";".join(f"{c:.4f}" for c in members),
             "psnr": f"{last['val/psnr']:.3f}", "train_s": f"{last['time/wall_s']:.1f}",
             "overrides": " ".join(CONFIGS[config])}
+
+
+def single_row(runs: list[Path], preset: str, seed: int) -> dict:
+    """The table's row of the reference: one single-scene stage-1 run per member, in member
+    order; the PSNR is their mean, the seconds their sum."""
+    lasts = [last_values(run) for run in runs]
+    members = [last["val/density_corr"] for last in lasts]
+    return {"config": "single", "preset": preset, "seed": seed,
+            "corr_mean": f"{statistics.fmean(members):.4f}", "corr_min": f"{min(members):.4f}",
+            "corr_members": ";".join(f"{c:.4f}" for c in members),
+            "psnr": f"{statistics.fmean(last['val/psnr'] for last in lasts):.3f}",
+            "train_s": f"{sum(last['time/wall_s'] for last in lasts):.1f}", "overrides": ""}
+
+
+def train_single(preset: str, seed: int) -> dict:
+    """Single-scene stage 1 on each member of the preset's family (rendered first where
+    missing), on the family's training sky alone; the reference row."""
+    data_dir = output_dir() / "datasets"
+    cfg = compose_train(["scene=family", f"preset={preset}"])
+    family = load_family(ensure_family(cfg.scene, data_dir, progress=False))
+    runs = []
+    for member in family.members:  # the training sky is environment 0 of every member
+        run, _ = train("ea", output_dir(), preset, [
+            f"scene.path={member.folder}", f"scene.name={member.name}",
+            "stage.environments=[0]", f"seed={seed}"], logger="[csv]")
+        runs.append(run)
+    return single_row(runs, preset, seed)
 
 
 def read_table(table: Path) -> list[dict]:
@@ -111,10 +144,13 @@ def main() -> None:
         for config in args.configs.split(","):
             if (config, args.preset, str(seed)) in done:
                 continue
-            run, _ = train("ea", output_dir(), args.preset,
-                           ["scene=family", "mode=generative", *CONFIGS[config],
-                            f"seed={seed}"], logger="[csv]")
-            row = run_row(run, config, args.preset, seed)
+            if config == "single":
+                row = train_single(args.preset, seed)
+            else:
+                run, _ = train("ea", output_dir(), args.preset,
+                               ["scene=family", "mode=generative", *CONFIGS[config],
+                                f"seed={seed}"], logger="[csv]")
+                row = run_row(run, config, args.preset, seed)
             append_row(args.table, row)
             print(f"{config} seed {seed}: density corr {row['corr_mean']} (worst "
                   f"{row['corr_min']}), {row['psnr']} dB, {row['train_s']} s", flush=True)

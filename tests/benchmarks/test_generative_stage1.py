@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from benchmarks.generative_stage1 import append_row, read_table, run_row, summary
+from benchmarks.generative_stage1 import append_row, read_table, run_row, single_row, summary
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.unit
@@ -36,6 +36,22 @@ def test_a_row_holds_every_members_last_correlation_in_member_order(tmp_path) ->
     assert float(row["corr_mean"]) == pytest.approx(0.85)
     assert row["psnr"] == "31.500" and row["train_s"] == "29.8"
     assert row["overrides"] == "mode.latent.input=true"
+
+
+def test_the_single_scene_reference_row_holds_one_run_per_member_in_order(tmp_path) -> None:
+    runs = []
+    for k, corr in enumerate((0.91, 0.88, 0.95)):
+        run = tmp_path / f"member{k}"
+        write_log(run, [{"val/density_corr": 0.1, "val/psnr": 20.0, "time/wall_s": 1.0},
+                        {"val/density_corr": corr, "val/psnr": 30.0 + k,
+                         "time/wall_s": 10.0 + k}])
+        runs.append(run)
+    row = single_row(runs, "cpu", 1)
+    assert row["corr_members"] == "0.9100;0.8800;0.9500"
+    assert row["corr_min"] == "0.8800"
+    assert float(row["corr_mean"]) == pytest.approx(0.9133, abs=1e-4)
+    assert row["psnr"] == "31.000" and row["train_s"] == "33.0"
+    assert (row["config"], row["preset"], row["seed"]) == ("single", "cpu", 1)
 
 
 def test_the_summary_gives_mean_and_spread_per_configuration(tmp_path) -> None:
