@@ -38,6 +38,7 @@ per thread (nrt.physics.volume.lookup_batches), so the thread count decides its 
 
 PINNED = {  # fingerprint -> digest of medium_grids.npz
     "af91abcf8d07b487": "96d10ecfdf86d7465db72aa6e08b12ce0719c80c85ff4c0d642a132f154bd650",
+    "2678936c3d9c571e": "6e14bb2a6dd4a700af54cdd82edd71185680709726dab74aeefca7ec87ecfe58",
 }
 
 
