@@ -62,6 +62,15 @@ def options(preset: str, fine: str, rte_steps: int, ea_steps: int
             "fine": (fine, [], [])}
 
 
+def write_table(table: Path, rows: list[dict]) -> None:
+    """``rows`` as the CSV ``table`` with :data:`COLUMNS`, rewritten whole: a row written
+    before a column existed gets it blank."""
+    with table.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def rendering_seconds(out: Path, data_dir: Path, preset: str, scene: str) -> float:
     """The wall seconds of ``nrt-data`` drawing ``scene``'s photos at ``preset`` into
     ``data_dir``: measured at the first call, then read from ``data_dir/render_s.json``."""
@@ -125,10 +134,7 @@ def main() -> None:
                        "ea_run": str(ea_run.relative_to(out)),
                        "rte_run": str(rte_run.relative_to(out)), "code": code}
                 table.append({k: str(v) for k, v in row.items()})
-                with args.table.open("w", newline="") as f:  # older rows: new columns blank
-                    writer = csv.DictWriter(f, fieldnames=COLUMNS, restval="")
-                    writer.writeheader()
-                    writer.writerows(table)
+                write_table(args.table, table)
                 print(f"{name} {scene} seed {seed}: stage 1 {ea['train_s']} s, stage 2 "
                       f"{rte['train_s']} s, sigma_t {rte.get('mse_sigma_t_x100')}", flush=True)
 

@@ -3,11 +3,13 @@ overrides, and the options differ from the quickstart in the one way their names
 
 from __future__ import annotations
 
+import csv
+
 import pytest
 from omegaconf import OmegaConf
 
 from benchmarks.common import compose_train
-from benchmarks.quickstart_spend import options
+from benchmarks.quickstart_spend import COLUMNS, options, write_table
 
 pytestmark = pytest.mark.unit
 
@@ -28,3 +30,21 @@ def test_each_option_changes_only_what_its_name_says():
     assert got["rte_steps"]["rte"][1] == 2500 and got["rte_steps"]["ea"] == quick["ea"]
     assert got["ea_steps"]["ea"][0] == 3000 and got["ea_steps"]["rte"] == quick["rte"]
     assert got["fine"]["ea"][2] == 2 * quick["ea"][2]  # 128 x 128 photos against 64 x 64
+
+
+def test_the_default_preset_is_the_fine_one():
+    """``nrt-train`` with no preset runs the quickstart's ``cpu_fine``: 128 x 128 photos and
+    1024 photo rays, where ``cpu`` has 64 x 64 and 512."""
+    default, cpu = compose_train(["stage=rte"]), compose_train(["stage=rte", "preset=cpu"])
+    assert (default.scene.cameras.width, default.budget.rte.photo_rays) == (128, 1024)
+    assert (cpu.scene.cameras.width, cpu.budget.rte.photo_rays) == (64, 512)
+
+
+def test_a_row_from_before_a_column_keeps_its_values_and_gets_it_blank(tmp_path):
+    old = {k: "1" for k in COLUMNS if k != "start_sigma_t_x100"}
+    new = {**old, "option": "fine", "start_sigma_t_x100": "9.34"}
+    write_table(tmp_path / "t.csv", [old, new])
+    rows = list(csv.DictReader((tmp_path / "t.csv").open()))
+    assert list(rows[0]) == COLUMNS
+    assert rows[0]["start_sigma_t_x100"] == "" and rows[0]["option"] == "1"
+    assert rows[1]["start_sigma_t_x100"] == "9.34" and rows[1]["option"] == "fine"
