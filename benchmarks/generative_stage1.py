@@ -12,7 +12,8 @@ members' correlations in the same row (PSNR: their mean; seconds: their sum). A 
 ``--summary`` prints the mean and spread per configuration from the table alone.
 
     python -m benchmarks.generative_stage1 [--preset tiny] [--seeds 0,1,2]
-        [--configs default,latent_input,single] [--table docs/data/generative_stage1.csv]
+        [--configs default,latent_input,latent_input_wide,latent_input_f4,single]
+        [--table docs/data/generative_stage1.csv]
         [--summary]
 """
 
@@ -31,6 +32,10 @@ TABLE = ROOT / "docs" / "data" / "generative_stage1.csv"
 CONFIGS = {
     "default": [],
     "latent_input": ["mode.latent.input=true"],  # the density MLP reads z beside the features
+    # with z as input, more capacity for the members to differ: a wider density MLP, or
+    # twice the hash features a level (more spatial functions to combine per member)
+    "latent_input_wide": ["mode.latent.input=true", "model.density_field.hidden=128"],
+    "latent_input_f4": ["mode.latent.input=true", "model.density_field.hash_grid.features=4"],
     "single": [],  # the reference: single-scene stage 1 on each member (single_row)
 }
 """The configurations measured, by name: their overrides of the generative defaults."""
