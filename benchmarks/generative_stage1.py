@@ -12,7 +12,8 @@ members' correlations in the same row (PSNR: their mean; seconds: their sum). A 
 ``--summary`` prints the mean and spread per configuration from the table alone.
 
     python -m benchmarks.generative_stage1 [--preset tiny] [--seeds 0,1,2]
-        [--configs default,latent_input,latent_input_wide,latent_input_f4,single]
+        [--configs default,latent_input,latent_input_wide,latent_input_f4,
+                   latent_input_long,single]
         [--table docs/data/generative_stage1.csv]
         [--summary]
 """
@@ -36,6 +37,7 @@ CONFIGS = {
     # twice the hash features a level (more spatial functions to combine per member)
     "latent_input_wide": ["mode.latent.input=true", "model.density_field.hidden=128"],
     "latent_input_f4": ["mode.latent.input=true", "model.density_field.hash_grid.features=4"],
+    "latent_input_long": ["mode.latent.input=true", "budget.ea.steps=3000"],  # twice the steps
     "single": [],  # the reference: single-scene stage 1 on each member (single_row)
 }
 """The configurations measured, by name: their overrides of the generative defaults."""
