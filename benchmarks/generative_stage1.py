@@ -21,11 +21,10 @@ members' correlations in the same row (PSNR: their mean; seconds: their sum). A 
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 from pathlib import Path
 
-from benchmarks.common import compose_train, metric_rows, output_dir, train
+from benchmarks.common import append_rows, compose_train, metric_rows, output_dir, read_table, train
 from nrt.data.family import ensure_family, load_family
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -93,23 +92,6 @@ def train_single(preset: str, seed: int) -> dict:
     return single_row(runs, preset, seed)
 
 
-def read_table(table: Path) -> list[dict]:
-    if not table.exists():
-        return []
-    with open(table) as f:
-        return list(csv.DictReader(f))
-
-
-def append_row(table: Path, row: dict) -> None:
-    new = not table.exists()
-    table.parent.mkdir(parents=True, exist_ok=True)
-    with open(table, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
-
-
 def summary(rows: list[dict]) -> str:
     """Mean (sd) over seeds per configuration and preset: the members' mean correlation, the
     worst member's, the held-out PSNR."""
@@ -158,7 +140,7 @@ def main() -> None:
                                ["scene=family", "mode=generative", *CONFIGS[config],
                                 f"seed={seed}"], logger="[csv]")
                 row = run_row(run, config, args.preset, seed)
-            append_row(args.table, row)
+            append_rows(args.table, FIELDS, [row])
             print(f"{config} seed {seed}: density corr {row['corr_mean']} (worst "
                   f"{row['corr_min']}), {row['psnr']} dB, {row['train_s']} s", flush=True)
 
