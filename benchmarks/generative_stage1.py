@@ -12,8 +12,8 @@ members' correlations in the same row (PSNR: their mean; seconds: their sum). A 
 ``--summary`` prints the mean and spread per configuration from the table alone.
 
     python -m benchmarks.generative_stage1 [--preset tiny] [--seeds 0,1,2]
-        [--configs default,latent_input,latent_input_wide,latent_input_f4,
-                   latent_input_long,single]
+        [--configs default,modulation_only,latent_input,latent_input_wide,
+                   latent_input_f4,single]
         [--table docs/data/generative_stage1.csv]
         [--summary]
 """
@@ -30,13 +30,15 @@ from nrt.data.family import ensure_family, load_family
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "docs" / "data" / "generative_stage1.csv"
 CONFIGS = {
-    "default": [],
-    "latent_input": ["mode.latent.input=true"],  # the density MLP reads z beside the features
+    "default": [],  # the latent input, twice the steps (mode.latent.ea_steps_scale=2)
+    "modulation_only": ["mode.latent.input=false", "mode.latent.ea_steps_scale=1"],  # 1 + M(z)
+    "latent_input": ["mode.latent.input=true", "mode.latent.ea_steps_scale=1"],  # z beside
     # with z as input, more capacity for the members to differ: a wider density MLP, or
     # twice the hash features a level (more spatial functions to combine per member)
-    "latent_input_wide": ["mode.latent.input=true", "model.density_field.hidden=128"],
-    "latent_input_f4": ["mode.latent.input=true", "model.density_field.hash_grid.features=4"],
-    "latent_input_long": ["mode.latent.input=true", "budget.ea.steps=3000"],  # twice the steps
+    "latent_input_wide": ["mode.latent.input=true", "mode.latent.ea_steps_scale=1",
+                          "model.density_field.hidden=128"],
+    "latent_input_f4": ["mode.latent.input=true", "mode.latent.ea_steps_scale=1",
+                        "model.density_field.hash_grid.features=4"],
     "single": [],  # the reference: single-scene stage 1 on each member (single_row)
 }
 """The configurations measured, by name: their overrides of the generative defaults."""

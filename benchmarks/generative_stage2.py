@@ -4,8 +4,9 @@ levers side by side.
 For each stage-2 configuration (a name and its overrides, :data:`CONFIGS`) and seed,
 ``nrt-train stage=rte mode=generative scene=family`` at the preset, through the CLI, from
 the generative stage-1 run of configuration ``--stage1`` (a name of
-:data:`benchmarks.generative_stage1.CONFIGS`) and the same seed: the newest finished one
-under the output folder, else a new one. Every member's sigma_t, sigma_s, sigma_a and g MSE
+:data:`benchmarks.generative_stage1.CONFIGS`) and the same seed: the newest finished run
+under the output folder whose saved config trains the same (however it was spelled), else a
+new one. Every member's sigma_t, sigma_s, sigma_a and g MSE
 x100 at the first validation (step 0: the stage as built from stage 1) and the last, its
 end PSNR, and the run's training seconds go to ``--table`` (CSV), one row per member. A run
 whose (stage1, config, preset, seed) rows exist is skipped, so a killed benchmark
@@ -14,7 +15,7 @@ end below their start and the worst member's end / start, from the table alone.
 ``--from-run DIR`` adds the rows of a finished run instead of training one (its metrics
 from ``csv/metrics.csv``, else from its TensorBoard scalars).
 
-    python -m benchmarks.generative_stage2 [--preset cpu] [--stage1 latent_input_long]
+    python -m benchmarks.generative_stage2 [--preset cpu] [--stage1 default]
         [--seeds 0] [--configs default,two_a_step] [--table docs/data/generative_stage2.csv]
         [--from-run DIR --configs NAME --seeds S] [--summary]
 """
@@ -25,8 +26,10 @@ import argparse
 import statistics
 from pathlib import Path
 
+from omegaconf import DictConfig, OmegaConf
+
 from benchmarks import generative_stage1
-from benchmarks.common import append_rows, metric_rows, output_dir, read_table, train
+from benchmarks.common import append_rows, compose_train, metric_rows, output_dir, read_table, train
 from nrt.run_dirs import LAST_CKPT, read_run_info
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -42,8 +45,9 @@ PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")
 FIELDS = ("stage1", "config", "preset", "seed", "member",
           *(f"{p}_{when}" for p in PROPERTIES for when in ("start", "end")),
           "psnr_end", "train_s", "steps", "overrides")
-BOOKKEEPING = ("logger=", "paths.data_dir=", "trainer.enable_progress_bar=", "render.progress=")
-"""Overrides that do not change what a run computes: ignored when a run is looked up."""
+TRAINING = ("model", "stage", "data", "losses", "scene", "seed")
+"""The sections of a run's config that decide what it trains (the rest: where it writes,
+how it logs)."""
 
 
 def validation_rows(run: Path) -> list[dict[str, float]]:
@@ -83,27 +87,28 @@ def run_rows(run: Path, stage1: str, config: str, preset: str, seed: int) -> lis
     return out
 
 
-def run_overrides(run: Path) -> set[str]:
-    """A run's command-line overrides (``.hydra/overrides.yaml``) less the bookkeeping."""
-    lines = (run / ".hydra" / "overrides.yaml").read_text().splitlines()
-    overrides = {line.removeprefix("- ").strip() for line in lines if line.startswith("- ")}
-    return {o for o in overrides if not o.startswith(BOOKKEEPING)}
+def trains_as(run: Path, cfg: DictConfig) -> bool:
+    """Whether a run's saved config (``.hydra/config.yaml``) trains what ``cfg`` does: the
+    same :data:`TRAINING` sections once resolved, however their overrides were spelled."""
+    saved = OmegaConf.load(run / ".hydra" / "config.yaml")
+    return all(OmegaConf.to_container(OmegaConf.create({k: saved[k]}), resolve=True)
+               == OmegaConf.to_container(OmegaConf.create({k: cfg[k]}), resolve=True)
+               for k in TRAINING)
 
 
 def stage1_checkpoint(stage1: str, preset: str, seed: int) -> Path:
-    """The last checkpoint of the newest finished generative stage-1 run of configuration
-    ``stage1`` at ``preset`` and ``seed`` under the output folder (as
+    """The last checkpoint of the newest finished generative stage-1 run under the output
+    folder that trains what configuration ``stage1`` at ``preset`` and ``seed`` does (as
     :mod:`benchmarks.generative_stage1` trains it); a new run when there is none."""
-    wanted = {"stage=ea", f"preset={preset}", "scene=family", "mode=generative",
-              *generative_stage1.CONFIGS[stage1], f"seed={seed}"}
+    overrides = ["scene=family", "mode=generative", *generative_stage1.CONFIGS[stage1],
+                 f"seed={seed}"]
+    cfg = compose_train(["stage=ea", f"preset={preset}",
+                         f"paths.data_dir={output_dir() / 'datasets'}", *overrides])
     runs = [p.parent.parent for p in (output_dir() / "family" / "ea").glob(f"*/{LAST_CKPT}")]
-    runs = [r for r in runs if (r / ".hydra" / "overrides.yaml").exists()
-            and run_overrides(r) == wanted and read_run_info(r).get("finished_step")]
+    runs = [r for r in runs if read_run_info(r).get("finished_step")
+            and (r / ".hydra" / "config.yaml").exists() and trains_as(r, cfg)]
     if not runs:
-        run, _ = train("ea", output_dir(), preset,
-                       ["scene=family", "mode=generative", *generative_stage1.CONFIGS[stage1],
-                        f"seed={seed}"], logger="[csv]")
-        runs = [run]
+        runs = [train("ea", output_dir(), preset, overrides, logger="[csv]")[0]]
     newest = max(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime)
     return (newest / LAST_CKPT).resolve()
 
@@ -136,7 +141,7 @@ def summary(rows: list[dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--stage1", default="latent_input_long",
+    parser.add_argument("--stage1", default="default",
                         choices=[c for c in generative_stage1.CONFIGS if c != "single"])
     parser.add_argument("--seeds", default="0")
     parser.add_argument("--configs", default=",".join(CONFIGS))

@@ -36,7 +36,7 @@ def test_a_row_holds_every_members_last_correlation_in_member_order(tmp_path) ->
     assert float(row["corr_min"]) == pytest.approx(0.80)
     assert float(row["corr_mean"]) == pytest.approx(0.85)
     assert row["psnr"] == "31.500" and row["train_s"] == "29.8"
-    assert row["overrides"] == "mode.latent.input=true"
+    assert row["overrides"] == "mode.latent.input=true mode.latent.ea_steps_scale=1"
 
 
 def test_the_single_scene_reference_row_holds_one_run_per_member_in_order(tmp_path) -> None:

@@ -1,20 +1,20 @@
 """benchmarks/generative_stage2.py: a run's rows hold every member's first and last
 validation, read alike from the CSV log and from TensorBoard; stage-1 runs are found by
-their overrides; the summary counts the members below their start."""
+what they train; the summary counts the members below their start."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
+from omegaconf import OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 
-from benchmarks.common import read_table
+from benchmarks.common import compose_train, read_table
 from benchmarks.generative_stage2 import (
     FIELDS,
     PROPERTIES,
     append_rows,
-    run_overrides,
     run_rows,
     stage1_checkpoint,
     summary,
@@ -52,7 +52,7 @@ def test_the_rows_of_a_csv_logged_run_are_its_first_and_last_validation(tmp_path
     write_log(tmp_path, [validation(0, 10.0), {"step": 5, "train/loss": 0.2},
                          validation(9, 7.0), validation(19, 4.0)])
     write_run_json(tmp_path)
-    rows = run_rows(tmp_path, "latent_input_long", "default", "cpu", 1)
+    rows = run_rows(tmp_path, "default", "default", "cpu", 1)
     assert [(str(r["member"]), r["sigma_t_start"], r["sigma_t_end"]) for r in rows] \
         == expected_rows()
     assert rows[2]["g_start"] == f"{10.0 * 3 * 4:.4f}" and rows[2]["psnr_end"] == "32.000"
@@ -68,32 +68,34 @@ def test_a_run_logged_only_to_tensorboard_gives_the_same_rows(tmp_path) -> None:
     writer.add_scalar("train/loss", 0.3, 25)  # a training scalar after the last validation
     writer.close()
     write_run_json(tmp_path)
-    rows = run_rows(tmp_path, "latent_input_long", "default", "cpu", 0)
+    rows = run_rows(tmp_path, "default", "default", "cpu", 0)
     assert [(str(r["member"]), r["sigma_t_start"], r["sigma_t_end"]) for r in rows] \
         == expected_rows()
 
 
-def test_a_stage1_run_is_found_by_its_overrides_only(tmp_path, monkeypatch) -> None:
+def test_a_stage1_run_is_found_by_what_it_trains(tmp_path, monkeypatch) -> None:
+    """The default stage 1 is found under other spellings of the same config (the preset's
+    steps doubled by hand, the input named), and not in runs of another seed or input."""
     monkeypatch.setenv("NRT_OUTPUT_DIR", str(tmp_path))
-    wanted = ["stage=ea", "preset=cpu", "logger=[csv]", "paths.data_dir=/x", "scene=family",
-              "mode=generative", "mode.latent.input=true", "budget.ea.steps=3000", "seed=1"]
-    for name, overrides in (("a_match", wanted), ("b_other_seed", [*wanted[:-1], "seed=0"]),
-                            ("c_more", [*wanted, "model.density_field.hidden=128"])):
+    base = ["stage=ea", "preset=cpu", f"paths.data_dir={tmp_path / 'datasets'}",
+            "scene=family", "mode=generative"]
+    spelled = ["mode.latent.input=true", "mode.latent.ea_steps_scale=1",
+               "budget.ea.steps=3000", "seed=1"]
+    for name, overrides in (("a_same", spelled), ("b_other_seed", [*spelled[:-1], "seed=0"]),
+                            ("c_no_input", ["mode.latent.input=false", "seed=1"])):
         run = tmp_path / "family" / "ea" / name
         (run / ".hydra").mkdir(parents=True)
-        (run / ".hydra" / "overrides.yaml").write_text(
-            "".join(f"- {o}\n" for o in overrides))
+        OmegaConf.save(compose_train([*base, *overrides]), run / ".hydra" / "config.yaml")
         (run / "checkpoints").mkdir()
         (run / "checkpoints" / "last.ckpt").write_bytes(b"")
         write_run_json(run)
-    assert "logger=[csv]" not in run_overrides(tmp_path / "family" / "ea" / "a_match")
-    found = stage1_checkpoint("latent_input_long", "cpu", 1)
-    assert found == (tmp_path / "family" / "ea" / "a_match" / "checkpoints" / "last.ckpt")
+    found = stage1_checkpoint("default", "cpu", 1)
+    assert found == (tmp_path / "family" / "ea" / "a_same" / "checkpoints" / "last.ckpt")
 
 
 def test_the_summary_counts_the_members_below_their_start(tmp_path) -> None:
     table = tmp_path / "rows.csv"
-    base = {"stage1": "latent_input_long", "config": "default", "preset": "cpu", "seed": 0,
+    base = {"stage1": "default", "config": "default", "preset": "cpu", "seed": 0,
             "psnr_end": 30, "train_s": "100.0", "steps": 10, "overrides": ""}
     ends = (5.0, 12.0, 30.0)  # members 1 and 2 end above their start of 10
     append_rows(table, FIELDS, [{**base, "member": k, "sigma_t_start": 10.0,
@@ -101,5 +103,5 @@ def test_the_summary_counts_the_members_below_their_start(tmp_path) -> None:
                          "sigma_a_start": 1, "sigma_a_end": 1, "g_start": 1, "g_end": 1}
                         for k in range(K)])
     line = summary(read_table(table)).splitlines()[2]
-    assert line == ("| latent_input_long | default | cpu | 0 | 10.0 -> 15.7 | 8.0 -> 4.0 "
+    assert line == ("| default | default | cpu | 0 | 10.0 -> 15.7 | 8.0 -> 4.0 "
                     "| 1 / 3 | 3.00 | 100.0 |")
