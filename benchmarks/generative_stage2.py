@@ -91,9 +91,13 @@ def trains_as(run: Path, cfg: DictConfig) -> bool:
     """Whether a run's saved config (``.hydra/config.yaml``) trains what ``cfg`` does: the
     same :data:`TRAINING` sections once resolved, however their overrides were spelled."""
     saved = OmegaConf.load(run / ".hydra" / "config.yaml")
-    return all(OmegaConf.to_container(OmegaConf.create({k: saved[k]}), resolve=True)
-               == OmegaConf.to_container(OmegaConf.create({k: cfg[k]}), resolve=True)
-               for k in TRAINING)
+
+    def resolved(config: DictConfig, key: str):
+        node = config[key]
+        return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) \
+            else node
+
+    return all(resolved(saved, k) == resolved(cfg, k) for k in TRAINING)
 
 
 def stage1_checkpoint(stage1: str, preset: str, seed: int) -> Path:

@@ -143,10 +143,12 @@ def keep_extensions_in(output_dir: str | None) -> None:
 
 
 def run_app(task: Callable[[DictConfig], object], config_name: str,
-            command: str | None = None) -> None:
+            command: str | None = None,
+            first_check: Callable[[DictConfig], None] | None = None) -> None:
     """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml`` (the command
     ``command``, by default ``nrt-<config_name>``); config mistakes and :class:`NrtError`
-    end in ``nrt: error:`` with status 2."""
+    end in ``nrt: error:`` with status 2. ``first_check`` runs before the config is
+    resolved: a mistake whose consequence is an unresolvable key is named as itself."""
     if not CONFIG_DIR.is_dir():
         sys.exit(f"nrt: config folder '{CONFIG_DIR}' not found. Install nrt from its source "
                  "checkout in editable mode (pip install -e .), which keeps conf/ beside nrt/.")
@@ -170,6 +172,8 @@ def run_app(task: Callable[[DictConfig], object], config_name: str,
                 # every interpolation resolves, or the mistake names its key, typed settings
                 # hold only their schema's keys, and every scalar option holds a value a run
                 # can use, before the task
+                if first_check is not None:
+                    first_check(cfg)
                 OmegaConf.to_container(cfg, resolve=True)
                 from nrt.cli.checks import check_options  # it imports CONFIG_DIR from here
 
