@@ -23,7 +23,6 @@ Only the tuning scenes are accepted: nothing measured on a blind scene may choos
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import yaml
@@ -32,8 +31,10 @@ from benchmarks.common import (
     SCENES,
     TUNING_SCENES,
     add_budget_arguments,
+    append_rows,
     ea_checkpoint,
     output_dir,
+    read_table,
     series,
     train,
 )
@@ -48,23 +49,6 @@ COLUMNS = ("round", "config", "stage", "scene", "preset", "budget_s", "seconds",
            *(f"mse_{k}_x100" for k in PROPERTIES), "start_sigma_t", "best_sigma_t",
            "best_at_s", "overrides")
 MANY_STEPS = 1_000_000  # the budget stops the run
-
-
-def read_table(path: Path) -> list[dict]:
-    if not path.is_file():
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def append_row(path: Path, row: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    new = not path.is_file()
-    with open(path, "a", newline="") as f:
-        writer = csv.DictWriter(f, COLUMNS)
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
 
 
 def run_row(run: Path) -> dict:
@@ -206,7 +190,7 @@ def main() -> None:
             row = {"round": args.round, "config": name, "stage": args.stage, "scene": scene,
                    "preset": args.preset, "budget_s": budget, "overrides": describe(overrides),
                    **run_config(args, scene, ckpt, budget, overrides)}
-            append_row(table, row)
+            append_rows(table, COLUMNS, [row])
             print(f"{name} on {scene}: sigma_t {row['mse_sigma_t_x100']} sigma_s "
                   f"{row['mse_sigma_s_x100']} ({row['steps']} steps)", flush=True)
     print(summary(read_table(table)))

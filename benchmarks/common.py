@@ -155,6 +155,26 @@ def commit_of(code: Path) -> str:
     return head + (" + changes" if git("status", "--porcelain", "--untracked-files=no") else "")
 
 
+def read_table(table: Path) -> list[dict]:
+    """The rows of a benchmark's CSV table ([] where there is none yet)."""
+    if not table.is_file():
+        return []
+    with open(table, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def append_rows(table: Path, fields: tuple[str, ...], rows: list[dict]) -> None:
+    """Append ``rows`` to a benchmark's CSV table of columns ``fields``, written with its
+    header where it is new (a killed benchmark keeps every row appended before)."""
+    new = not table.is_file()
+    table.parent.mkdir(parents=True, exist_ok=True)
+    with open(table, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
 def metric_rows(run: Path) -> list[dict]:
     """The rows of a run's CSV log (``csv/metrics.csv``)."""
     with open(run / "csv" / "metrics.csv") as f:

@@ -12,8 +12,8 @@ members' correlations in the same row (PSNR: their mean; seconds: their sum). A 
 ``--summary`` prints the mean and spread per configuration from the table alone.
 
     python -m benchmarks.generative_stage1 [--preset tiny] [--seeds 0,1,2]
-        [--configs default,latent_input,latent_input_wide,latent_input_f4,
-                   latent_input_long,single]
+        [--configs default,modulation_only,latent_input,latent_input_wide,
+                   latent_input_f4,single]
         [--table docs/data/generative_stage1.csv]
         [--summary]
 """
@@ -21,23 +21,24 @@ members' correlations in the same row (PSNR: their mean; seconds: their sum). A 
 from __future__ import annotations
 
 import argparse
-import csv
 import statistics
 from pathlib import Path
 
-from benchmarks.common import compose_train, metric_rows, output_dir, train
+from benchmarks.common import append_rows, compose_train, metric_rows, output_dir, read_table, train
 from nrt.data.family import ensure_family, load_family
 
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "docs" / "data" / "generative_stage1.csv"
 CONFIGS = {
-    "default": [],
-    "latent_input": ["mode.latent.input=true"],  # the density MLP reads z beside the features
+    "default": [],  # the latent input, twice the steps (mode.latent.ea_steps_scale=2)
+    "modulation_only": ["mode.latent.input=false", "mode.latent.ea_steps_scale=1"],  # 1 + M(z)
+    "latent_input": ["mode.latent.input=true", "mode.latent.ea_steps_scale=1"],  # z beside
     # with z as input, more capacity for the members to differ: a wider density MLP, or
     # twice the hash features a level (more spatial functions to combine per member)
-    "latent_input_wide": ["mode.latent.input=true", "model.density_field.hidden=128"],
-    "latent_input_f4": ["mode.latent.input=true", "model.density_field.hash_grid.features=4"],
-    "latent_input_long": ["mode.latent.input=true", "budget.ea.steps=3000"],  # twice the steps
+    "latent_input_wide": ["mode.latent.input=true", "mode.latent.ea_steps_scale=1",
+                          "model.density_field.hidden=128"],
+    "latent_input_f4": ["mode.latent.input=true", "mode.latent.ea_steps_scale=1",
+                        "model.density_field.hash_grid.features=4"],
     "single": [],  # the reference: single-scene stage 1 on each member (single_row)
 }
 """The configurations measured, by name: their overrides of the generative defaults."""
@@ -93,23 +94,6 @@ def train_single(preset: str, seed: int) -> dict:
     return single_row(runs, preset, seed)
 
 
-def read_table(table: Path) -> list[dict]:
-    if not table.exists():
-        return []
-    with open(table) as f:
-        return list(csv.DictReader(f))
-
-
-def append_row(table: Path, row: dict) -> None:
-    new = not table.exists()
-    table.parent.mkdir(parents=True, exist_ok=True)
-    with open(table, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        if new:
-            writer.writeheader()
-        writer.writerow(row)
-
-
 def summary(rows: list[dict]) -> str:
     """Mean (sd) over seeds per configuration and preset: the members' mean correlation, the
     worst member's, the held-out PSNR."""
@@ -158,7 +142,7 @@ def main() -> None:
                                ["scene=family", "mode=generative", *CONFIGS[config],
                                 f"seed={seed}"], logger="[csv]")
                 row = run_row(run, config, args.preset, seed)
-            append_row(args.table, row)
+            append_rows(args.table, FIELDS, [row])
             print(f"{config} seed {seed}: density corr {row['corr_mean']} (worst "
                   f"{row['corr_min']}), {row['psnr']} dB, {row['train_s']} s", flush=True)
 

@@ -29,8 +29,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from benchmarks.common import commit_of, output_dir, train
-from benchmarks.generative_stage1 import read_table
+from benchmarks.common import commit_of, output_dir, read_table, train
 from nrt.run_dirs import LAST_CKPT
 
 ROOT = Path(__file__).resolve().parent.parent

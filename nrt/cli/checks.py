@@ -21,8 +21,8 @@ from nrt.cli.config_errors import value_text
 from nrt.cli.shapes import check_arguments
 from nrt.errors import ConfigError
 
-__all__ = ["check_arguments", "check_budget", "check_mode", "check_objectives", "check_options",
-           "check_processes", "processes"]
+__all__ = ["check_arguments", "check_budget", "check_mode", "check_mode_fits", "check_objectives",
+           "check_options", "check_processes", "processes"]
 
 ZERO_ALLOWED = ("light_degree", "sky_env_directions", "sky_phase_directions", "photo_twins")
 """Counts of ``budget`` for which 0 is meaningful (SH band 0 only; one of the two MIS
@@ -213,12 +213,12 @@ LATENT_COUNTS = {"dim": "d_z, the size of a latent code",
 """Counts of ``mode.latent`` (each at least 1) and what they count."""
 
 
-def check_mode(cfg: DictConfig) -> None:
-    """Refuse a mode that does not fit the scene or stage, and latent settings no run can
-    use, before anything is built or loaded: ``mode=generative`` trains stages 1 and 2 on a scene
-    family (``scene.family``), a family trains only in that mode, and ``mode.latent`` holds
-    counts >= 1, a non-negative ``init_std`` and ``prior_weight``, a positive ``lr`` and a
-    boolean ``input``."""
+def check_mode_fits(cfg: DictConfig) -> bool:
+    """Refuse a mode that does not fit the scene or stage, reading only ``mode.name``,
+    ``scene.family`` and ``stage.name`` (so that it can run before the config is resolved:
+    a generative stage on one scene leaves the family's keys unresolvable):
+    ``mode=generative`` trains stages 1 and 2 on a scene family, and a family trains only in
+    that mode. Whether the mode is generative."""
     mode = OmegaConf.select(cfg, "mode.name", default="single")
     family = OmegaConf.select(cfg, "scene.family") is not None
     if mode not in ("single", "generative"):
@@ -231,7 +231,7 @@ def check_mode(cfg: DictConfig) -> None:
                           "train one member alone, pass scene.path=<member folder> "
                           "scene.name=<member name> with a single scene config.")
     if mode == "single":
-        return
+        return False
     if not family:
         raise ConfigError(f"mode=generative learns a distribution over a family of scenes, "
                           f"but scene={cfg.scene.name} is one scene (it has no scene.family). "
@@ -241,6 +241,16 @@ def check_mode(cfg: DictConfig) -> None:
         raise ConfigError(f"mode=generative is built for stage=ea and stage=rte; stage="
                           f"{cfg.stage.name} in generative mode is not built. Run nrt-train "
                           "stage=ea mode=generative scene=family, then stage=rte.")
+    return True
+
+
+def check_mode(cfg: DictConfig) -> None:
+    """Refuse a mode that does not fit the scene or stage (:func:`check_mode_fits`), and
+    latent settings no run can use, before anything is built or loaded: ``mode.latent``
+    holds counts >= 1, a non-negative ``init_std`` and ``prior_weight``, a positive ``lr``
+    and a boolean ``input``."""
+    if not check_mode_fits(cfg):
+        return
     single = [name for name, unit in check_objectives(cfg).items() if not unit.families]
     if single:
         raise ConfigError(f"stage={cfg.stage.name} mode=generative takes each objective over "

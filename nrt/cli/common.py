@@ -3,7 +3,8 @@
 - registers the OmegaConf resolvers the configs use (``nrt_pid``, ``nrt_run_dir``,
   ``nrt_sweep_dir``, ``nrt_job_subdir``, ``nrt_eval_dir``, ``nrt_resume_tag``, and
   ``nrt_name`` and ``nrt_folder``, which refuse a name that would leave the output folder
-  and a folder that cannot take files, before Hydra creates any folder);
+  and a folder that cannot take files, before Hydra creates any folder, and
+  ``nrt_scaled_steps``, a step count times a checked factor);
 - tunes glibc malloc so large per-step temporaries are reused instead of being mmap'd
   and unmapped every step (docs/conventions.md, "Runtime"; 3-4x faster training steps on CPU);
 - lets idle OpenMP threads sleep instead of spin (``OMP_WAIT_POLICY=PASSIVE``, unless set):
@@ -40,7 +41,7 @@ from omegaconf import DictConfig, OmegaConf
 from nrt import run_dirs
 from nrt.cli.config_errors import config_mistake
 from nrt.cli.schema import check_schema_keys
-from nrt.errors import NrtError
+from nrt.errors import ConfigError, NrtError
 from nrt.files import check_name, check_output_folder, write_failure
 
 log = logging.getLogger(__name__)
@@ -90,6 +91,17 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("nrt_name", lambda key, value: check_name(key, value))
     if not OmegaConf.has_resolver("nrt_folder"):
         OmegaConf.register_new_resolver("nrt_folder", _checked_folder)
+    if not OmegaConf.has_resolver("nrt_scaled_steps"):
+        OmegaConf.register_new_resolver("nrt_scaled_steps", _scaled_steps)
+
+
+def _scaled_steps(key: str, steps: int, scale: float) -> int:
+    """Resolver ``${nrt_scaled_steps:key,steps,scale}``: ``steps x scale`` rounded, once the
+    factor (the config key ``key``) is found to be a positive number."""
+    if not isinstance(scale, int | float) or isinstance(scale, bool) or scale <= 0:
+        raise ConfigError(f"{key}={scale}: must be a number > 0, the factor on "
+                          f"budget.ea.steps ({steps}) that gives the run's steps.")
+    return round(steps * scale) if isinstance(steps, int | float) else steps
 
 
 def _checked_folder(key: str, folder: str) -> str:
@@ -131,10 +143,12 @@ def keep_extensions_in(output_dir: str | None) -> None:
 
 
 def run_app(task: Callable[[DictConfig], object], config_name: str,
-            command: str | None = None) -> None:
+            command: str | None = None,
+            first_check: Callable[[DictConfig], None] | None = None) -> None:
     """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml`` (the command
     ``command``, by default ``nrt-<config_name>``); config mistakes and :class:`NrtError`
-    end in ``nrt: error:`` with status 2."""
+    end in ``nrt: error:`` with status 2. ``first_check`` runs before the config is
+    resolved: a mistake whose consequence is an unresolvable key is named as itself."""
     if not CONFIG_DIR.is_dir():
         sys.exit(f"nrt: config folder '{CONFIG_DIR}' not found. Install nrt from its source "
                  "checkout in editable mode (pip install -e .), which keeps conf/ beside nrt/.")
@@ -158,6 +172,8 @@ def run_app(task: Callable[[DictConfig], object], config_name: str,
                 # every interpolation resolves, or the mistake names its key, typed settings
                 # hold only their schema's keys, and every scalar option holds a value a run
                 # can use, before the task
+                if first_check is not None:
+                    first_check(cfg)
                 OmegaConf.to_container(cfg, resolve=True)
                 from nrt.cli.checks import check_options  # it imports CONFIG_DIR from here
 

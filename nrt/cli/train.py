@@ -26,6 +26,7 @@ from nrt.cli.checks import (
     check_arguments,
     check_budget,
     check_mode,
+    check_mode_fits,
     check_objectives,
     check_processes,
     processes,
@@ -194,7 +195,7 @@ def train_task(cfg: DictConfig) -> dict:
 
 
 def main() -> None:
-    run_app(train_task, "train")
+    run_app(train_task, "train", first_check=check_mode_fits)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ import sys
 
 import pytest
 
-from benchmarks.generative_stage1 import append_row, read_table, run_row, single_row, summary
+from benchmarks.common import append_rows, read_table
+from benchmarks.generative_stage1 import FIELDS, run_row, single_row, summary
 from tests.conftest import ROOT
 
 pytestmark = pytest.mark.unit
@@ -35,7 +36,7 @@ def test_a_row_holds_every_members_last_correlation_in_member_order(tmp_path) ->
     assert float(row["corr_min"]) == pytest.approx(0.80)
     assert float(row["corr_mean"]) == pytest.approx(0.85)
     assert row["psnr"] == "31.500" and row["train_s"] == "29.8"
-    assert row["overrides"] == "mode.latent.input=true"
+    assert row["overrides"] == "mode.latent.input=true mode.latent.ea_steps_scale=1"
 
 
 def test_the_single_scene_reference_row_holds_one_run_per_member_in_order(tmp_path) -> None:
@@ -60,8 +61,8 @@ def test_the_summary_gives_mean_and_spread_per_configuration(tmp_path) -> None:
     for seed, (config, mean, worst, psnr) in enumerate(
             [("default", 0.80, 0.70, 31.0), ("default", 0.84, 0.78, 33.0),
              ("latent_input", 0.87, 0.85, 32.0)]):
-        append_row(table, {**base, "config": config, "seed": seed, "corr_mean": mean,
-                           "corr_min": worst, "psnr": psnr})
+        append_rows(table, FIELDS, [{**base, "config": config, "seed": seed,
+                                     "corr_mean": mean, "corr_min": worst, "psnr": psnr}])
     assert len(read_table(table)) == 3
     lines = summary(read_table(table)).splitlines()
     assert lines[2] == "| default | tiny | 2 | 0.820 ± 0.028 | 0.700 | 32.000 ± 1.414 |"

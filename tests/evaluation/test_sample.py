@@ -341,7 +341,7 @@ def generative_run(family_data, tmp_path_factory) -> tuple[Path, dict]:
     data_dir = f"paths.data_dir={family_data.family.root.parent}"
     train = [sys.executable, "-m", "nrt.cli.train", *GENERATIVE_FAMILY, *SMALL_FAMILY, data_dir,
              *TRAIN_SHORT]
-    ea = subprocess.run([*train, "stage=ea", "budget.ea.steps=100"], env=env,
+    ea = subprocess.run([*train, "stage=ea", "stage.steps=100"], env=env,
                         capture_output=True, text=True, timeout=600)
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = next((out / "family" / "ea").glob("*/checkpoints/last.ckpt"))

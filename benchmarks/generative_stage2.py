@@ -1,0 +1,192 @@
+"""Generative stage 2 per member: each member's property MSE at the start and the end, its
+levers side by side.
+
+For each stage-2 configuration (a name and its overrides, :data:`CONFIGS`) and seed,
+``nrt-train stage=rte mode=generative scene=family`` at the preset, through the CLI, from
+the generative stage-1 run of configuration ``--stage1`` (a name of
+:data:`benchmarks.generative_stage1.CONFIGS`) and the same seed: the newest finished run
+under the output folder whose saved config trains the same (however it was spelled), else a
+new one. Every member's sigma_t, sigma_s, sigma_a and g MSE
+x100 at the first validation (step 0: the stage as built from stage 1) and the last, its
+end PSNR, and the run's training seconds go to ``--table`` (CSV), one row per member. A run
+whose (stage1, config, preset, seed) rows exist is skipped, so a killed benchmark
+continues; ``--summary`` prints per run the family's mean start and end, the members that
+end below their start and the worst member's end / start, from the table alone.
+``--from-run DIR`` adds the rows of a finished run instead of training one (its metrics
+from ``csv/metrics.csv``, else from its TensorBoard scalars).
+
+    python -m benchmarks.generative_stage2 [--preset cpu] [--stage1 default]
+        [--seeds 0] [--configs default,two_a_step] [--table docs/data/generative_stage2.csv]
+        [--from-run DIR --configs NAME --seeds S] [--summary]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from benchmarks import generative_stage1
+from benchmarks.common import append_rows, compose_train, metric_rows, output_dir, read_table, train
+from nrt.run_dirs import LAST_CKPT, read_run_info
+
+ROOT = Path(__file__).resolve().parent.parent
+TABLE = ROOT / "docs" / "data" / "generative_stage2.csv"
+CONFIGS = {
+    "default": [],
+    # two members a step (each drawn member gets 8x the photo rays of a step over all 16),
+    # in three times the steps: each member sees 1.5x the rays of the default run
+    "two_a_step": ["data.members_per_step=2", "budget.rte.steps=4500"],
+}
+"""The stage-2 configurations measured, by name: their overrides of the generative defaults."""
+PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")
+FIELDS = ("stage1", "config", "preset", "seed", "member",
+          *(f"{p}_{when}" for p in PROPERTIES for when in ("start", "end")),
+          "psnr_end", "train_s", "steps", "overrides")
+TRAINING = ("model", "stage", "data", "losses", "scene", "seed")
+"""The sections of a run's config that decide what it trains (the rest: where it writes,
+how it logs)."""
+
+
+def validation_rows(run: Path) -> list[dict[str, float]]:
+    """The run's validation records in step order, each {metric: value} with its ``step``:
+    from ``csv/metrics.csv``, else from the TensorBoard event files."""
+    if (run / "csv" / "metrics.csv").exists():
+        rows = [{k: float(v) for k, v in r.items() if v not in ("", None)}
+                for r in metric_rows(run)]
+        return [r for r in rows if "val/mse_sigma_t_x100" in r]
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    by_step: dict[int, dict[str, float]] = {}
+    for tag in events.Tags()["scalars"]:
+        if tag.startswith("val/"):
+            for event in events.Scalars(tag):
+                by_step.setdefault(event.step, {"step": float(event.step)})[tag] = event.value
+    return [by_step[s] for s in sorted(by_step) if "val/mse_sigma_t_x100" in by_step[s]]
+
+
+def run_rows(run: Path, stage1: str, config: str, preset: str, seed: int) -> list[dict]:
+    """The table's rows of a finished generative stage-2 run: one per member."""
+    rows = validation_rows(run)
+    first, last = rows[0], rows[-1]
+    info = read_run_info(run)
+    members = len(info["members"])
+    out = []
+    for k in range(members):
+        row = {"stage1": stage1, "config": config, "preset": preset, "seed": seed,
+               "member": k, "psnr_end": f"{last[f'val/psnr_member{k}']:.3f}",
+               "train_s": f"{info['final_metrics']['time/wall_s']:.1f}",
+               "steps": info["finished_step"], "overrides": " ".join(CONFIGS.get(config, []))}
+        for prop in PROPERTIES:
+            key = f"val/mse_{prop}_x100_member{k}"
+            row[f"{prop}_start"], row[f"{prop}_end"] = f"{first[key]:.4f}", f"{last[key]:.4f}"
+        out.append(row)
+    return out
+
+
+def trains_as(run: Path, cfg: DictConfig) -> bool:
+    """Whether a run's saved config (``.hydra/config.yaml``) trains what ``cfg`` does: the
+    same :data:`TRAINING` sections once resolved, however their overrides were spelled."""
+    saved = OmegaConf.load(run / ".hydra" / "config.yaml")
+
+    def resolved(config: DictConfig, key: str):
+        node = config[key]
+        return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) \
+            else node
+
+    return all(resolved(saved, k) == resolved(cfg, k) for k in TRAINING)
+
+
+def stage1_checkpoint(stage1: str, preset: str, seed: int) -> Path:
+    """The last checkpoint of the newest finished generative stage-1 run under the output
+    folder that trains what configuration ``stage1`` at ``preset`` and ``seed`` does (as
+    :mod:`benchmarks.generative_stage1` trains it); a new run when there is none."""
+    overrides = ["scene=family", "mode=generative", *generative_stage1.CONFIGS[stage1],
+                 f"seed={seed}"]
+    cfg = compose_train(["stage=ea", f"preset={preset}",
+                         f"paths.data_dir={output_dir() / 'datasets'}", *overrides])
+    runs = [p.parent.parent for p in (output_dir() / "family" / "ea").glob(f"*/{LAST_CKPT}")]
+    runs = [r for r in runs if read_run_info(r).get("finished_step")
+            and (r / ".hydra" / "config.yaml").exists() and trains_as(r, cfg)]
+    if not runs:
+        runs = [train("ea", output_dir(), preset, overrides, logger="[csv]")[0]]
+    newest = max(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime)
+    return (newest / LAST_CKPT).resolve()
+
+
+def summary(rows: list[dict]) -> str:
+    """Per run (stage1, config, preset, seed): the members' mean sigma_t and sigma_s MSE x100
+    at the start and the end, how many members end below their start, the worst member's
+    end / start."""
+    lines = ["| stage 1 | stage 2 | preset | seed | sigma_t start -> end | sigma_s start -> end "
+             "| members below start | worst end / start | training s |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+    runs: dict[tuple[str, ...], list[dict]] = {}
+    for row in rows:
+        runs.setdefault((row["stage1"], row["config"], row["preset"], row["seed"]),
+                        []).append(row)
+
+    def mean(members: list[dict], key: str) -> float:
+        return statistics.fmean(float(m[key]) for m in members)
+
+    for (stage1, config, preset, seed), members in runs.items():
+        ratios = [float(m["sigma_t_end"]) / float(m["sigma_t_start"]) for m in members]
+        lines.append(
+            f"| {stage1} | {config} | {preset} | {seed} | {mean(members, 'sigma_t_start'):.1f} "
+            f"-> {mean(members, 'sigma_t_end'):.1f} | {mean(members, 'sigma_s_start'):.1f} -> "
+            f"{mean(members, 'sigma_s_end'):.1f} | {sum(r < 1 for r in ratios)} / "
+            f"{len(ratios)} | {max(ratios):.2f} | {members[0]['train_s']} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--stage1", default="default",
+                        choices=[c for c in generative_stage1.CONFIGS if c != "single"])
+    parser.add_argument("--seeds", default="0")
+    parser.add_argument("--configs", default=",".join(CONFIGS))
+    parser.add_argument("--table", type=Path, default=TABLE)
+    parser.add_argument("--from-run", type=Path, default=None,
+                        help="add a finished run's rows (one --configs name, one --seeds)")
+    parser.add_argument("--summary", action="store_true", help="print the table and stop")
+    args = parser.parse_args()
+    if args.summary:
+        print(summary(read_table(args.table)))
+        return
+    configs, seeds = args.configs.split(","), [int(s) for s in args.seeds.split(",")]
+    unknown = [c for c in configs if c not in CONFIGS]
+    if unknown:
+        parser.error(f"--configs: unknown configuration {unknown[0]!r}; the known ones are "
+                     f"{', '.join(CONFIGS)} (benchmarks/generative_stage2.py).")
+    if args.from_run is not None:
+        if len(configs) != 1 or len(seeds) != 1:
+            parser.error("--from-run: name the run's one configuration (--configs) and its "
+                         "seed (--seeds).")
+        if not (args.from_run / "run.json").exists():
+            parser.error(f"--from-run: {args.from_run} holds no run.json; give the folder "
+                         "of a finished generative stage-2 run.")
+        append_rows(args.table, FIELDS, run_rows(args.from_run, args.stage1, configs[0],
+                                         args.preset, seeds[0]))
+        print(summary(read_table(args.table)))
+        return
+    done = {(r["stage1"], r["config"], r["preset"], r["seed"])
+            for r in read_table(args.table)}
+    for seed in seeds:
+        for config in configs:
+            if (args.stage1, config, args.preset, str(seed)) in done:
+                continue
+            ckpt = stage1_checkpoint(args.stage1, args.preset, seed)
+            run, _ = train("rte", output_dir(), args.preset,
+                           ["scene=family", "mode=generative", f"init.ea_ckpt={ckpt}",
+                            *CONFIGS[config], f"seed={seed}"])
+            append_rows(args.table, FIELDS, run_rows(run, args.stage1, config, args.preset, seed))
+            print(summary([r for r in read_table(args.table)
+                           if (r["config"], r["seed"]) == (config, str(seed))]), flush=True)
+
+
+if __name__ == "__main__":
+    main()
