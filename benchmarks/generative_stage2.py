@@ -37,7 +37,7 @@ TABLE = ROOT / "docs" / "data" / "generative_stage2.csv"
 CONFIGS = {
     "default": [],
     # two members a step (each drawn member gets 8x the photo rays of a step over all 16),
-    # in three times the steps: each member sees 1.5x the rays of the default run
+    # in three times the steps: each member sees 3x the photo rays of the default run
     "two_a_step": ["data.members_per_step=2", "budget.rte.steps=4500"],
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
