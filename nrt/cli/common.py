@@ -144,7 +144,7 @@ def keep_extensions_in(output_dir: str | None) -> None:
 
 def run_app(task: Callable[[DictConfig], object], config_name: str,
             command: str | None = None,
-            first_check: Callable[[DictConfig], None] | None = None) -> None:
+            first_check: Callable[[DictConfig], object] | None = None) -> None:
     """Run ``task`` as a Hydra app over ``conf/<config_name>.yaml`` (the command
     ``command``, by default ``nrt-<config_name>``); config mistakes and :class:`NrtError`
     end in ``nrt: error:`` with status 2. ``first_check`` runs before the config is
