@@ -34,6 +34,9 @@ TUNING_SCENES = ("default", "default_seed1", "default_seed2", "default_seed3")
 """The only scenes any default of nrt (stage 2's or the baseline's) is chosen on."""
 BLIND_SCENES = ("heldout", "heldout2", "heldout3", "heldout4")
 """Scenes written once and never tuned on: they only report how the defaults carry over."""
+TRAINING = ("model", "stage", "data", "losses", "scene", "seed")
+"""The sections of a run's config that decide what it trains (the rest: where it writes,
+how it logs); ``model`` holds the start (``init.ea_ckpt``)."""
 
 
 def add_budget_arguments(parser: argparse.ArgumentParser, budget_s: float,
@@ -137,6 +140,35 @@ def ea_checkpoint(name: str, preset: str, overrides: list[str] | None = None,
     return (run / LAST_CKPT).resolve()
 
 
+def trains_as(run: Path, cfg: DictConfig) -> bool:
+    """Whether a run's saved config (``.hydra/config.yaml``) trains what ``cfg`` does: the
+    same :data:`TRAINING` sections once resolved, however their overrides were spelled."""
+    saved = OmegaConf.load(run / ".hydra" / "config.yaml")
+
+    def resolved(config: DictConfig, key: str):
+        node = config[key]
+        return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) \
+            else node
+
+    return all(resolved(saved, k) == resolved(cfg, k) for k in TRAINING)
+
+
+def run_like(stage: str, preset: str, overrides: list[str],
+             logger: str = "[tensorboard,csv]") -> Path:
+    """The newest finished run under :func:`output_dir` that trains what ``nrt-train
+    stage=<stage> preset=<preset> <overrides>`` does (:func:`trains_as`); where there is
+    none, that run, trained now through the CLI."""
+    cfg = compose_train([f"stage={stage}", f"preset={preset}",
+                         f"paths.data_dir={output_dir() / 'datasets'}", *overrides])
+    runs = [p.parent.parent for p in (output_dir() / cfg.scene.name / stage).glob(
+        f"*/{LAST_CKPT}")]
+    runs = [r for r in runs if finished(r) and (r / ".hydra" / "config.yaml").exists()
+            and trains_as(r, cfg)]
+    if not runs:
+        return train(stage, output_dir(), preset, overrides, logger=logger)[0]
+    return max(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime)
+
+
 def run_finals(run: Path, keep: dict[str, str]) -> dict:
     """A finished run's steps, training seconds and the final metrics ``keep`` (column ->
     metric key; a metric the run did not log is left out), from its ``run.json``."""
@@ -179,6 +211,28 @@ def metric_rows(run: Path) -> list[dict]:
     """The rows of a run's CSV log (``csv/metrics.csv``)."""
     with open(run / "csv" / "metrics.csv") as f:
         return list(csv.DictReader(f))
+
+
+def validation_rows(run: Path) -> list[dict[str, float]]:
+    """A run's validation records in step order, each {metric: value} with its ``step`` and
+    the training seconds then (``time/wall_s``): from ``csv/metrics.csv``, else from the
+    TensorBoard event files."""
+    if (run / "csv" / "metrics.csv").exists():
+        rows = [{k: float(v) for k, v in r.items() if v not in ("", None)}
+                for r in metric_rows(run)]
+        return [r for r in rows if "val/mse_sigma_t_x100" in r]
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    by_step: dict[int, dict[str, float]] = {}
+    scalars = events.Tags()["scalars"]
+    for tag in (t for t in scalars if t.startswith("val/")):
+        for event in events.Scalars(tag):
+            by_step.setdefault(event.step, {"step": float(event.step)})[tag] = event.value
+    for event in events.Scalars("time/wall_s") if "time/wall_s" in scalars else ():
+        if event.step in by_step:
+            by_step[event.step]["time/wall_s"] = event.value
+    return [by_step[s] for s in sorted(by_step) if "val/mse_sigma_t_x100" in by_step[s]]
 
 
 def series(run: Path, key: str) -> list[float]:

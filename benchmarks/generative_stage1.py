@@ -24,7 +24,15 @@ import argparse
 import statistics
 from pathlib import Path
 
-from benchmarks.common import append_rows, compose_train, metric_rows, output_dir, read_table, train
+from benchmarks.common import (
+    append_rows,
+    compose_train,
+    metric_rows,
+    output_dir,
+    read_table,
+    run_like,
+    train,
+)
 from nrt.data.family import ensure_family, load_family
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -79,19 +87,21 @@ def single_row(runs: list[Path], preset: str, seed: int) -> dict:
             "train_s": f"{sum(last['time/wall_s'] for last in lasts):.1f}", "overrides": ""}
 
 
-def train_single(preset: str, seed: int) -> dict:
-    """Single-scene stage 1 on each member of the preset's family (rendered first where
-    missing), on the family's training sky alone; the reference row."""
-    data_dir = output_dir() / "datasets"
+def member_overrides(preset: str, seed: int) -> list[list[str]]:
+    """Per member of the preset's family (rendered first where missing), in member order:
+    the overrides that train that member alone, on the family's training sky only
+    (environment 0 of every member), as the generative run sees it."""
     cfg = compose_train(["scene=family", f"preset={preset}"])
-    family = load_family(ensure_family(cfg.scene, data_dir, progress=False))
-    runs = []
-    for member in family.members:  # the training sky is environment 0 of every member
-        run, _ = train("ea", output_dir(), preset, [
-            f"scene.path={member.folder}", f"scene.name={member.name}",
-            "stage.environments=[0]", f"seed={seed}"], logger="[csv]")
-        runs.append(run)
-    return single_row(runs, preset, seed)
+    family = load_family(ensure_family(cfg.scene, output_dir() / "datasets", progress=False))
+    return [[f"scene.path={member.folder}", f"scene.name={member.name}",
+             "stage.environments=[0]", f"seed={seed}"] for member in family.members]
+
+
+def train_single(preset: str, seed: int) -> dict:
+    """Single-scene stage 1 on each member of the preset's family (finished runs of the
+    same config reused); the reference row."""
+    return single_row([run_like("ea", preset, overrides, logger="[csv]")
+                       for overrides in member_overrides(preset, seed)], preset, seed)
 
 
 def summary(rows: list[dict]) -> str:

@@ -26,10 +26,15 @@ import argparse
 import statistics
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
-
 from benchmarks import generative_stage1
-from benchmarks.common import append_rows, compose_train, metric_rows, output_dir, read_table, train
+from benchmarks.common import (
+    append_rows,
+    output_dir,
+    read_table,
+    run_like,
+    train,
+    validation_rows,
+)
 from nrt.run_dirs import LAST_CKPT, read_run_info
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -50,27 +55,6 @@ PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")
 FIELDS = ("stage1", "config", "preset", "seed", "member",
           *(f"{p}_{when}" for p in PROPERTIES for when in ("start", "end")),
           "psnr_end", "train_s", "steps", "overrides")
-TRAINING = ("model", "stage", "data", "losses", "scene", "seed")
-"""The sections of a run's config that decide what it trains (the rest: where it writes,
-how it logs)."""
-
-
-def validation_rows(run: Path) -> list[dict[str, float]]:
-    """The run's validation records in step order, each {metric: value} with its ``step``:
-    from ``csv/metrics.csv``, else from the TensorBoard event files."""
-    if (run / "csv" / "metrics.csv").exists():
-        rows = [{k: float(v) for k, v in r.items() if v not in ("", None)}
-                for r in metric_rows(run)]
-        return [r for r in rows if "val/mse_sigma_t_x100" in r]
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
-    events.Reload()
-    by_step: dict[int, dict[str, float]] = {}
-    for tag in events.Tags()["scalars"]:
-        if tag.startswith("val/"):
-            for event in events.Scalars(tag):
-                by_step.setdefault(event.step, {"step": float(event.step)})[tag] = event.value
-    return [by_step[s] for s in sorted(by_step) if "val/mse_sigma_t_x100" in by_step[s]]
 
 
 def run_rows(run: Path, stage1: str, config: str, preset: str, seed: int) -> list[dict]:
@@ -92,34 +76,13 @@ def run_rows(run: Path, stage1: str, config: str, preset: str, seed: int) -> lis
     return out
 
 
-def trains_as(run: Path, cfg: DictConfig) -> bool:
-    """Whether a run's saved config (``.hydra/config.yaml``) trains what ``cfg`` does: the
-    same :data:`TRAINING` sections once resolved, however their overrides were spelled."""
-    saved = OmegaConf.load(run / ".hydra" / "config.yaml")
-
-    def resolved(config: DictConfig, key: str):
-        node = config[key]
-        return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) \
-            else node
-
-    return all(resolved(saved, k) == resolved(cfg, k) for k in TRAINING)
-
-
 def stage1_checkpoint(stage1: str, preset: str, seed: int) -> Path:
     """The last checkpoint of the newest finished generative stage-1 run under the output
     folder that trains what configuration ``stage1`` at ``preset`` and ``seed`` does (as
     :mod:`benchmarks.generative_stage1` trains it); a new run when there is none."""
     overrides = ["scene=family", "mode=generative", *generative_stage1.CONFIGS[stage1],
                  f"seed={seed}"]
-    cfg = compose_train(["stage=ea", f"preset={preset}",
-                         f"paths.data_dir={output_dir() / 'datasets'}", *overrides])
-    runs = [p.parent.parent for p in (output_dir() / "family" / "ea").glob(f"*/{LAST_CKPT}")]
-    runs = [r for r in runs if read_run_info(r).get("finished_step")
-            and (r / ".hydra" / "config.yaml").exists() and trains_as(r, cfg)]
-    if not runs:
-        runs = [train("ea", output_dir(), preset, overrides, logger="[csv]")[0]]
-    newest = max(runs, key=lambda r: (r / LAST_CKPT).stat().st_mtime)
-    return (newest / LAST_CKPT).resolve()
+    return (run_like("ea", preset, overrides, logger="[csv]") / LAST_CKPT).resolve()
 
 
 def summary(rows: list[dict]) -> str:
