@@ -44,11 +44,12 @@ CONFIGS = {
     # two members a step (each drawn member gets 8x the photo rays of a step over all 16),
     # in three times the steps: each member sees 3x the photo rays of the default run
     "two_a_step": ["data.members_per_step=2", "budget.rte.steps=4500"],
-    # and a medium decoder of twice the width and one more hidden layer: whether the shared
-    # decoder's capacity limits the members' corrections
+    # and the medium's and the light's decoders of twice the features and width and one
+    # more hidden layer: whether the shared decoders' capacity limits the members
     "two_a_step_wide": ["data.members_per_step=2", "budget.rte.steps=4500",
                         "model.medium.features=32", "model.medium.hidden=128",
-                        "model.medium.layers=2"],
+                        "model.medium.layers=2", "model.light_field.features=32",
+                        "model.light_field.hidden=128", "model.light_field.layers=2"],
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
 PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")
