@@ -50,6 +50,10 @@ CONFIGS = {
                         "model.medium.features=32", "model.medium.hidden=128",
                         "model.medium.layers=2", "model.light_field.features=32",
                         "model.light_field.hidden=128", "model.light_field.layers=2"],
+    # two members a step from a stage 1 of d_z = 16 (--stage1 latent_dim16): the codes the
+    # decoders read span the members' corrections instead of a 4-dimensional family of them
+    "two_a_step_dim16": ["data.members_per_step=2", "budget.rte.steps=4500",
+                         "mode.latent.dim=16"],
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
 PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")
