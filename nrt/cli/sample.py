@@ -34,6 +34,7 @@ def settings_of(cfg: DictConfig):
         views=cfg.render.views, spp=cfg.render.spp, export_mitsuba=cfg.export.mitsuba,
         export_exr=cfg.export.exr, fid_crop=cfg.fid.crop, fid_n_crops=cfg.fid.n_crops,
         fid_real_views=cfg.fid.real_views, fid_truth_reference=cfg.fid.truth_reference,
+        fid_recon_reference=cfg.fid.recon_reference,
         interpolate_members=None if members is None else list(members),
         interpolate_steps=cfg.interpolate.steps, picture_max_samples=cfg.picture.max_samples)
 

@@ -18,7 +18,11 @@ latent code per family member and a decoder from any code to a medium
    members' true media, rendered exactly as the samples are and taken in turn to make up
    ``n`` media (the samples' image and crop counts; fresh crop positions on repeats), are
    scored the same way (``*_truth``): what a generator that reproduced its training
-   members would score at these counts, FID's bias at this size;
+   members would score at these counts, FID's bias at this size. With
+   ``recon_reference`` the members' reconstructions (each decoded from its own learned
+   code) are rendered and scored the same way, with the true media's render seeds
+   (``*_recon``): truth -> recon is what the reconstruction loses, recon -> samples what
+   sampling new codes adds;
 5. scores each member's reconstruction from its own code against its ground truth
    (property MSE x 10^2, ``recon_mse_<property>_x100`` the mean over members);
 6. draws a picture of the samples per sky and a strip of media decoded along
@@ -121,6 +125,7 @@ class SampleSettings:
     fid_n_crops: int = 4
     fid_real_views: int | None = None
     fid_truth_reference: bool = True
+    fid_recon_reference: bool = False
     interpolate_members: Sequence[int] | None = None
     interpolate_steps: int = 7
     picture_max_samples: int = 16
@@ -228,15 +233,27 @@ def fid_score(fid: FID, real: torch.Tensor, fake: torch.Tensor) -> float:
 
 
 def reconstruction(model: LatentMediumModel, data: FamilyData, resolution: int
-                   ) -> list[dict]:
+                   ) -> tuple[list[dict], list[dict[str, torch.Tensor]]]:
     """Each member decoded from its own code against its ground truth: a row per member
-    (``member``, ``name``, ``mse_<property>_x100``)."""
-    rows = []
+    (``member``, ``name``, ``mse_<property>_x100``) and the decoded grids."""
+    rows, media = [], []
     for k, (name, truth) in enumerate(zip(model.member_names(), data.truths, strict=True)):
         grids = decode(model, model.codes[k], resolution, f"member {k} ({name})")
         rows.append({"member": k, "name": name,
                      **property_metrics(grids, truth, data.effects)})
-    return rows
+        media.append(grids)
+    return rows, media
+
+
+def reference_renders(media: Sequence[Mapping], data: FamilyData, frames: dict[str, list[int]],
+                      spp: int, seed: int, n: int) -> dict[str, list[np.ndarray]]:
+    """``media`` rendered as the samples are (medium k with render seed ``seed + k``) and
+    taken in turn to make up ``n`` media: the samples' image and crop counts, per sky."""
+    renders: dict[str, list[np.ndarray]] = {col: [] for col in frames}
+    for k, grids in enumerate(media):
+        for col, stack in render_medium(grids, data, frames, spp, seed=seed + k).items():
+            renders[col].append(stack)
+    return {col: [stacks[i % len(stacks)] for i in range(n)] for col, stacks in renders.items()}
 
 
 def farthest_pair(codes: torch.Tensor) -> tuple[int, int]:
@@ -353,7 +370,7 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
     timings["decode_render_export_s"] = time.perf_counter() - start
 
     t0 = time.perf_counter()
-    result.members = reconstruction(model, data, res)
+    result.members, recon_media = reconstruction(model, data, res)
     for key in result.members[0]:
         if key.startswith("mse_"):
             result.metrics[f"recon_{key}"] = float(np.mean([r[key] for r in result.members]))
@@ -363,24 +380,20 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
     reals = {col: real_images(data, env, settings.fid_real_views)
              for col, env in data.skies.items()}
     if fid is not None:
-        truth_renders = {col: [] for col in frames}
-        if settings.fid_truth_reference:
-            for k, truth in enumerate(data.truths):
-                for col, stack in render_medium(truth, data, frames, spp,
-                                                seed=1 + settings.n + k).items():
-                    truth_renders[col].append(stack)
-            # n media, the members in turn: the samples' image and crop counts
-            truth_renders = {col: [stacks[i % len(stacks)] for i in range(settings.n)]
-                             for col, stacks in truth_renders.items()}
+        # the true media and the reconstructions share render seeds: equal media, equal FID
+        references = {name: reference_renders(media, data, frames, spp, 1 + settings.n,
+                                              settings.n)
+                      for name, media, wanted in (
+                          ("truth", data.truths, settings.fid_truth_reference),
+                          ("recon", recon_media, settings.fid_recon_reference)) if wanted}
         for col, real in reals.items():
             fid.white = white_of(real)
             fake = torch.as_tensor(np.concatenate(renders[col]))
             result.metrics[f"fid_{col}_illumination"] = fid_score(fid, real, fake)
-            if truth_renders[col]:
-                truth_fake = torch.as_tensor(np.concatenate(truth_renders[col]))
+            for name, reference in references.items():
                 fid.reset(real=False)
-                fid.update(truth_fake, real=False)
-                result.metrics[f"fid_{col}_illumination_truth"] = float(fid.compute())
+                fid.update(torch.as_tensor(np.concatenate(reference[col])), real=False)
+                result.metrics[f"fid_{col}_illumination_{name}"] = float(fid.compute())
             result.metrics[f"fid_{col}_real_crops"] = float(fid.count(True))
             result.metrics[f"fid_{col}_sample_crops"] = float(len(fake) * fid.n_crops)
         result.metrics["fid_crop"] = float(fid.crop)

@@ -256,16 +256,22 @@ def test_pictures_show_every_sample_under_both_skies(sampled):
 @NEEDS_FID
 @pytest.mark.slow
 def test_fid_columns_with_the_real_weights(family_data, tmp_path):
-    """Both FID columns (and the true media's reference) run with the real InceptionV3:
-    finite, positive, on the stated crop counts (~40 s: ~60 InceptionV3 passes)."""
+    """Both FID columns and the true media's and the reconstructions' references run with
+    the real InceptionV3: finite, positive, on the stated crop counts (~50 s: ~70
+    InceptionV3 passes). TruthPCA reconstructs each member exactly (up to float32
+    rounding of the grids), and the two references share render seeds and crop positions,
+    so they score alike: what ``*_recon`` adds to ``*_truth`` is the reconstruction's."""
     settings = SampleSettings(n=2, views=1, fid_n_crops=1, fid_real_views=2,
-                              interpolate_steps=2)
+                              interpolate_steps=2, fid_recon_reference=True)
     fid = make_fid(settings, family_data.cameras)
     result = sample_media(TruthPCA(family_data), family_data, settings, tmp_path, fid)
     m = result.metrics
     for col in ("train", "novel"):
-        for key in (f"fid_{col}_illumination", f"fid_{col}_illumination_truth"):
+        for key in (f"fid_{col}_illumination", f"fid_{col}_illumination_truth",
+                    f"fid_{col}_illumination_recon"):
             assert np.isfinite(m[key]) and m[key] > 0, (key, m[key])
+        assert m[f"fid_{col}_illumination_recon"] == pytest.approx(
+            m[f"fid_{col}_illumination_truth"], rel=1e-3, abs=1e-2)
         assert m[f"fid_{col}_real_crops"] == 4 * 2  # K members x 2 views x 1 crop
         assert m[f"fid_{col}_sample_crops"] == 2
     assert m["fid_crop"] == 16
