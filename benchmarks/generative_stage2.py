@@ -54,6 +54,10 @@ CONFIGS = {
     # decoders read span the members' corrections instead of a 4-dimensional family of them
     "two_a_step_dim16": ["data.members_per_step=2", "budget.rte.steps=4500",
                          "mode.latent.dim=16"],
+    # and a feature offset per member under its prior: each member's medium can leave the
+    # decoders' shared family, as a single-scene medium's free grid does
+    "two_a_step_dim16_offsets": ["data.members_per_step=2", "budget.rte.steps=4500",
+                                 "mode.latent.dim=16", "mode.latent.member_offsets=true"],
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
 PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")

@@ -247,8 +247,9 @@ def check_mode_fits(cfg: DictConfig) -> bool:
 def check_mode(cfg: DictConfig) -> None:
     """Refuse a mode that does not fit the scene or stage (:func:`check_mode_fits`), and
     latent settings no run can use, before anything is built or loaded: ``mode.latent``
-    holds counts >= 1, a non-negative ``init_std`` and ``prior_weight``, a positive ``lr``
-    and a boolean ``input``."""
+    holds counts >= 1, a non-negative ``init_std``, ``prior_weight`` and
+    ``offset_prior_weight``, a positive ``lr`` and booleans ``input`` and
+    ``member_offsets``."""
     if not check_mode_fits(cfg):
         return
     single = [name for name, unit in check_objectives(cfg).items() if not unit.families]
@@ -268,15 +269,19 @@ def check_mode(cfg: DictConfig) -> None:
         if not _is_count(latent.get(name), 1):
             raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be a whole number "
                               f">= 1 ({what}).")
-    for name in ("init_std", "prior_weight"):
-        if not _is_number(latent.get(name)) or latent[name] < 0:
+    for name in ("init_std", "prior_weight", "offset_prior_weight"):
+        if not _is_number(latent.get(name, 0)) or latent.get(name, 0) < 0:
             raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be a number >= 0.")
     if not _is_number(latent.get("lr")) or latent["lr"] <= 0:
         raise ConfigError(f"mode.latent.lr={latent.get('lr')}: a learning rate must be a "
                           "positive number.")
-    if not isinstance(latent.get("input", False), bool):
-        raise ConfigError(f"mode.latent.input={latent.get('input')}: must be true or false "
-                          "(whether stage 1's density MLP reads the code beside the features).")
+    for name, what in (("input", "whether stage 1's density MLP reads the code beside the "
+                                 "features"),
+                       ("member_offsets", "whether each member's stage-2 medium reads its own "
+                                          "feature offset")):
+        if not isinstance(latent.get(name, False), bool):
+            raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be true or false "
+                              f"({what}).")
 
 
 SINGLE_PROCESS_STAGES = ("dpt",)

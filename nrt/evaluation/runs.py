@@ -163,12 +163,12 @@ def open_generative_run(path: str | Path) -> GenerativeRun:
 def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> LatentMediumModel:
     """The scene family of the run's stage (its ``scenes``, :mod:`nrt.stages.family`) from
     ``checkpoint``, on the CPU in eval mode, checked to decode codes (``codes``,
-    ``member_names``, ``property_grids_for``)."""
+    ``member_names``, ``property_grids_for``, ``member_property_grids``)."""
     ckpt = checkpoint_path(run.path, checkpoint)
     module = load_stage(stage_class(run.path, run.model_target), ckpt)
     family = getattr(module, "scenes", None)
     if not all(hasattr(family, a) for a in ("codes", "member_names", "property_grids_for",
-                                            "medium_bbox")):
+                                            "member_property_grids", "medium_bbox")):
         raise NrtError(f"run='{run.path}': its module {run.model_target} has no latent codes "
                        f"and decoder; nrt-sample needs a generative stage-2 run "
                        f"(`{GENERATIVE_RTE}`).")

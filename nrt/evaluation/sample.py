@@ -66,7 +66,8 @@ class LatentMediumModel(Protocol):
     """What ``nrt-sample`` needs of a generative stage-2 run (its scene family,
     :class:`~nrt.stages.family.SceneFamily`): ``codes`` (K, d_z), one row per family member
     in the family's order, and the medium decoded from any code on ``resolution``^3 cells
-    in the format of ``Stage.property_grids`` (CPU, no gradient)."""
+    in the format of ``Stage.property_grids`` (CPU, no gradient), and each member's own
+    medium (its code, and whatever else the run keeps per member)."""
 
     codes: torch.Tensor
 
@@ -74,6 +75,9 @@ class LatentMediumModel(Protocol):
 
     def property_grids_for(self, code: torch.Tensor, resolution: int
                            ) -> dict[str, torch.Tensor]: ...
+
+    def member_property_grids(self, member: int, resolution: int
+                              ) -> dict[str, torch.Tensor]: ...
 
     def medium_bbox(self) -> torch.Tensor | None: ...
 
@@ -187,11 +191,13 @@ def check_medium(grids: Mapping[str, torch.Tensor], what: str) -> dict[str, torc
     return out
 
 
-def decode(model: LatentMediumModel, code: torch.Tensor, resolution: int, what: str
+def decode(model: LatentMediumModel, code: torch.Tensor | int, resolution: int, what: str
            ) -> dict[str, torch.Tensor]:
-    """The checked medium of ``code`` (d_z,) on ``resolution``^3 cells."""
+    """The checked medium of ``code`` (d_z,), or of member ``code`` (an int), on
+    ``resolution``^3 cells."""
     with torch.no_grad():
-        grids = model.property_grids_for(code.detach().float().cpu(), int(resolution))
+        grids = (model.member_property_grids(code, int(resolution)) if isinstance(code, int)
+                 else model.property_grids_for(code.detach().float().cpu(), int(resolution)))
     return check_medium(grids, what)
 
 
@@ -234,11 +240,11 @@ def fid_score(fid: FID, real: torch.Tensor, fake: torch.Tensor) -> float:
 
 def reconstruction(model: LatentMediumModel, data: FamilyData, resolution: int
                    ) -> tuple[list[dict], list[dict[str, torch.Tensor]]]:
-    """Each member decoded from its own code against its ground truth: a row per member
-    (``member``, ``name``, ``mse_<property>_x100``) and the decoded grids."""
+    """Each member's own medium (decoded from its own code) against its ground truth: a row
+    per member (``member``, ``name``, ``mse_<property>_x100``) and the decoded grids."""
     rows, media = [], []
     for k, (name, truth) in enumerate(zip(model.member_names(), data.truths, strict=True)):
-        grids = decode(model, model.codes[k], resolution, f"member {k} ({name})")
+        grids = decode(model, k, resolution, f"member {k} ({name})")
         rows.append({"member": k, "name": name,
                      **property_metrics(grids, truth, data.effects)})
         media.append(grids)

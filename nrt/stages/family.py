@@ -81,6 +81,7 @@ class SceneFamily(nn.Module):
 
     def __init__(self, stage: RTEStage, members: int, latent_dim: int,
                  latent_prior_weight: float = 1e-4, latent_lr: float = 1e-2,
+                 offset_prior_weight: float = 1.0,
                  ea_field: dict | None = None, member_info: list[dict] | None = None):
         super().__init__()
         for key, value in (("scene.family.members", members), ("mode.latent.dim", latent_dim)):
@@ -94,6 +95,10 @@ class SceneFamily(nn.Module):
                               "checkpoints/last.ckpt>); forward mode and init=none are for "
                               "single scenes.")
         self.latent_prior_weight = latent_prior_weight
+        self.offset_prior_weight = offset_prior_weight
+        if stage.medium.member_offsets not in (0, members):
+            raise ConfigError(f"the medium holds feature offsets for {stage.medium.member_offsets} "
+                              f"members, but the family has scene.family.members={members}.")
         self.latent_lr = latent_lr
         # the stage registers (and checkpoints) these two; a tuple keeps them out of this
         # module's own registry
@@ -185,11 +190,16 @@ class SceneFamily(nn.Module):
         dens = self.ea.density_of_encoding(self.ea_encoding(), code)
         return dens.reshape(r, r, r, 1).clamp_min(0.0)
 
+    def offset_of(self, member: int) -> int | None:
+        """``member`` where the medium holds the members' feature offsets, else None."""
+        return member if self.medium.member_offsets else None
+
     def member_medium(self, member: int):
-        """Member ``member``'s medium: voxels, differentiable in the decoder and the code."""
+        """Member ``member``'s medium: voxels, differentiable in the decoder, the code and the
+        member's feature offset (where the medium holds them)."""
         with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
             code = self.codes[member]
-            return self.medium.voxels_for(self.density_for(code), code)
+            return self.medium.voxels_for(self.density_for(code), code, self.offset_of(member))
 
     def member_scene(self, member: int) -> tuple[Any, Any]:
         """Member ``member``'s medium (:meth:`member_medium`) and light (the code without
@@ -269,9 +279,15 @@ class SceneFamily(nn.Module):
         """``latent_prior``: ``latent_prior_weight * mean_k |z_k|^2``, the codes' Gaussian
         prior, beside their data term (the photos), over the step's members: a code the
         photos do not see this step gets no prior step either (alone, Adam would scale the
-        prior's tiny gradient up to steps of ``latent_lr`` toward the origin)."""
-        codes = self.codes if self._step is None else self.codes[self._step[0]]
-        return {"latent_prior": self.latent_prior_weight * codes.square().sum(-1).mean()}
+        prior's tiny gradient up to steps of ``latent_lr`` toward the origin). With the
+        members' feature offsets, ``offset_prior``: ``offset_prior_weight`` times their
+        mean over the step's members of the mean over cells of ``|offset_k(x)|^2``."""
+        members = None if self._step is None else self._step[0]
+        codes = self.codes if members is None else self.codes[members]
+        priors = {"latent_prior": self.latent_prior_weight * codes.square().sum(-1).mean()}
+        if self.medium.member_offsets:
+            priors["offset_prior"] = self.offset_prior_weight * self.medium.offset_square(members)
+        return priors
 
     def step_metrics(self) -> dict[str, torch.Tensor]:
         """``latent_norm``: the codes' mean norm."""
@@ -283,19 +299,22 @@ class SceneFamily(nn.Module):
 
     # ------------------------------------------------------- grids and export
     @torch.no_grad()
-    def property_grids_for(self, code: torch.Tensor, resolution: int
-                           ) -> dict[str, torch.Tensor]:
+    def property_grids_for(self, code: torch.Tensor, resolution: int,
+                           member: int | None = None) -> dict[str, torch.Tensor]:
         """The medium decoded from any code (d_z,) on ``resolution``^3 cells, in the layout
         of :meth:`~nrt.stages.stage.Stage.property_grids`, on the CPU: the EA density under
-        the code on the medium's cells, modulated under the code, as in training."""
+        the code on the medium's cells, modulated under the code (with member ``member``'s
+        feature offset when given), as in training."""
         code = code.to(self.codes)
-        voxels = self.medium.voxels_for(self.density_for(code), code).detached()
+        voxels = self.medium.voxels_for(self.density_for(code), code, member).detached()
         grids = property_grids(voxels, resolution)
         return {k: v.cpu() for k, v in grids.items()}
 
     def member_property_grids(self, member: int, resolution: int) -> dict[str, torch.Tensor]:
-        """Member ``member``'s medium, decoded from its own code."""
-        return self.property_grids_for(self.codes[member].detach(), resolution)
+        """Member ``member``'s medium, decoded from its own code (and its own feature
+        offset, where the medium holds them)."""
+        return self.property_grids_for(self.codes[member].detach(), resolution,
+                                       self.offset_of(member))
 
     def property_grids(self, resolution: int) -> None:
         """None: a family has one medium per member (:meth:`member_property_grids`)."""

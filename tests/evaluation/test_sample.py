@@ -74,6 +74,9 @@ class TruthPCA:
     def medium_bbox(self) -> None:
         return None
 
+    def member_property_grids(self, member: int, resolution: int) -> dict:
+        return self.property_grids_for(self.codes[member], resolution)
+
     def property_grids_for(self, code: torch.Tensor, resolution: int) -> dict:
         flat, out, start = self.mean + code.double() @ self.basis, {}, 0
         for key, shape in self.shapes.items():

@@ -317,6 +317,8 @@ def test_stage_2_refuses_a_generative_checkpoint(short):
     ((*FAMILY, "mode.latent.prior_weight=-1"), "mode.latent.prior_weight=-1"),
     ((*FAMILY, "mode.latent.lr=0"), "mode.latent.lr=0"),
     ((*FAMILY, "mode.latent.input=3"), "mode.latent.input=3"),
+    ((*FAMILY, "mode.latent.member_offsets=2"), "mode.latent.member_offsets=2"),
+    ((*FAMILY, "mode.latent.offset_prior_weight=-0.5"), "mode.latent.offset_prior_weight=-0.5"),
     ((*FAMILY, "stage.environments=[0,1]"), "stage.environments=[0, 1]"),
 ])
 def test_bad_modes_are_refused_from_the_config(overrides, message):
@@ -326,7 +328,8 @@ def test_bad_modes_are_refused_from_the_config(overrides, message):
 
 
 def test_good_modes_pass_the_check():
-    for overrides in (["preset=tiny"], list(FAMILY), [*FAMILY, "mode.latent.dim=1"]):
+    for overrides in (["preset=tiny"], list(FAMILY), [*FAMILY, "mode.latent.dim=1"],
+                      [*FAMILY, "mode.latent.member_offsets=true"]):
         check_mode(compose_config("train", overrides))
 
 

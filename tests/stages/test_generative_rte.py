@@ -326,6 +326,45 @@ def test_a_run_of_two_members_a_step_trains_every_member(family_dir, short_ea, t
     assert all(f"val/psnr_member{k}" in run["metrics"] for k in range(K))
 
 
+def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, short_ea,
+                                                                    tmp_path):
+    """``mode.latent.member_offsets=true``: each member's medium reads its own feature
+    offset, zero at the start (so the start is the code's medium), resampled with the
+    shared features on the coarse-to-fine schedule, moved by its member's steps only and
+    pulled toward zero by the logged ``offset_prior``. Validation and export score the
+    member's medium with its offset, a new code decodes without one, and a checkpoint
+    written at the final resolution reloads the offsets exactly."""
+    overrides = (*SHORT, "mode.latent.member_offsets=true", "data.members_per_step=2")
+    fresh = hydra.utils.instantiate(stage2_config(family_dir, short_ea, *overrides).model,
+                                    _convert_="all").scenes
+    assert fresh.medium.member_offsets == K
+    assert not fresh.medium.modulation.offsets.any()  # the start: each code's own medium
+    run = train_stage2(family_dir, short_ea, tmp_path, *overrides)
+    family = run["model"].scenes
+    decoder = family.medium.modulation
+    r = family.medium.resolution
+    assert r > fresh.medium.resolution  # the schedule doubled the grid ...
+    assert decoder.offsets.shape == (r, r, r, K * decoder.features)  # ... and the offsets
+    assert (family.member_steps > 0).all()
+    for k in range(K):  # every member was drawn, so its offset moved
+        assert decoder.member_offset(k).abs().max() > 0, k
+        own = family.member_property_grids(k, 16)["sigma_s"]
+        assert not torch.equal(own, family.property_grids_for(family.codes[k], 16)["sigma_s"])
+    assert run["metrics"]["train/offset_prior"] > 0
+    family._step = None  # the prior over every member, not the last step's
+    expected = family.offset_prior_weight * decoder.offsets.detach().square().mean() \
+        * decoder.features
+    assert float(family.priors()["offset_prior"]) == pytest.approx(float(expected), rel=1e-5)
+    gt = truths(run["dm"])[1]
+    own = property_mse(family.member_property_grids(1, gt["g"].shape[0]), gt)
+    assert run["metrics"]["val/mse_sigma_t_x100_member1"] == pytest.approx(
+        float(own["sigma_t"]), rel=1e-4)
+    loaded = RTEStage.load_from_checkpoint(run["ckpt"], map_location="cpu").scenes
+    assert torch.equal(loaded.medium.modulation.offsets, decoder.offsets.detach())
+    for key, value in loaded.member_property_grids(2, 16).items():
+        assert torch.equal(value, family.member_property_grids(2, 16)[key]), key
+
+
 def test_resume_continues_the_codes(short, family_dir, short_ea, tmp_path):
     """A run resumed from the checkpoint continues from its codes (not the EA run's) and
     the codes' optimiser group."""

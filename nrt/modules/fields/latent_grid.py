@@ -11,6 +11,10 @@ The stages read the decoder on cells (:meth:`LatentGridDecoder.on_cells`: the ou
 the cell centres of an R^3 grid, then trilinear between them, as the single-scene voxel
 grids are read). The feature grid is the parameter ``values``, so the coarse-to-fine
 schedule of :mod:`nrt.modules.fields.coarse_to_fine` resamples it as it resamples a plain grid.
+
+With ``members`` K > 0 the decoder also holds a feature offset per member (``offsets``,
+the K offsets side by side on the channels of one grid, zero at the start, resampled with
+``values``): member k's outputs read ``f(x) + offset_k(x)``, a new code's ``f(x)`` alone.
 """
 
 from __future__ import annotations
@@ -27,22 +31,27 @@ class LatentGridDecoder(nn.Module):
     """``out_dim`` values at unit-box points (..., 3) under a code (..., ``latent_dim``) from
     ``features`` grid channels on ``resolution``^3 cells and an MLP of ``layers`` hidden ReLU
     layers of width ``hidden``. ``in_dim`` must be 3 (the medium's modulation factory
-    signature, :class:`~nrt.modules.fields.medium.NeuralMedium`)."""
+    signature, :class:`~nrt.modules.fields.medium.NeuralMedium`). ``members`` > 0: a feature
+    offset grid per member (module docstring)."""
 
     def __init__(self, in_dim: int, out_dim: int, latent_dim: int, resolution: int = 8,
                  features: int = 16, hidden: int = 64, layers: int = 1,
-                 init_std: float = 0.1):
+                 init_std: float = 0.1, members: int = 0):
         super().__init__()
         if in_dim != 3:
             raise ConfigError(f"a latent grid decoder takes 3-d points, got in_dim={in_dim}.")
-        for name, value in (("latent_dim", latent_dim), ("resolution", resolution),
-                            ("features", features), ("hidden", hidden), ("layers", layers)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        for name, value, least in (("latent_dim", latent_dim, 1), ("resolution", resolution, 1),
+                                   ("features", features, 1), ("hidden", hidden, 1),
+                                   ("layers", layers, 1), ("members", members, 0)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise ConfigError(f"latent grid decoder: {name}={value} must be a whole "
-                                  "number >= 1 (mode.latent, model.light_field, model.medium).")
-        self.latent_dim = latent_dim
+                                  f"number >= {least} (mode.latent, model.light_field, "
+                                  "model.medium).")
+        self.latent_dim, self.members, self.features = latent_dim, members, features
         self.values = nn.Parameter(torch.randn(resolution, resolution, resolution, features)
                                    * init_std)
+        self.offsets = (nn.Parameter(torch.zeros(resolution, resolution, resolution,
+                                                 members * features)) if members else None)
         self.net = mlp(features + latent_dim, hidden, out_dim, layers)
         nn.init.zeros_(self.net[-1].weight)
         nn.init.zeros_(self.net[-1].bias)
@@ -60,10 +69,34 @@ class LatentGridDecoder(nn.Module):
         (..., d_z) or one code (d_z,)."""
         return self._decode(sample_grid(self.values, unit, self.unit_box), code)
 
-    def on_cells(self, resolution: int, code: torch.Tensor) -> torch.Tensor:
+    def grids(self) -> list[nn.Parameter]:
+        """The grid parameters the coarse-to-fine schedule resamples: the features and the
+        members' offsets."""
+        return [self.values] + ([self.offsets] if self.offsets is not None else [])
+
+    def member_offset(self, member: int) -> torch.Tensor:
+        """Member ``member``'s feature offset (R, R, R, features)."""
+        f = self.features
+        return self.offsets[..., member * f:(member + 1) * f]
+
+    def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
+        """The mean over ``members`` (all when None) of the mean over the cells of
+        ``|offset_k(x)|^2``: the offsets' prior, before its weight."""
+        r = self.offsets.shape[0]
+        per_member = self.offsets.reshape(r ** 3, self.members, self.features).square()
+        per_member = per_member.sum(-1).mean(0)
+        return per_member.mean() if members is None else per_member[members].mean()
+
+    def on_cells(self, resolution: int, code: torch.Tensor, member: int | None = None
+                 ) -> torch.Tensor:
         """Outputs (R, R, R, out_dim) at the centres of ``resolution``^3 cells, ``[z, y, x]``,
-        under one code (d_z,): the features resampled to those cells, then the MLP."""
+        under one code (d_z,): the features (plus member ``member``'s offset, when given)
+        resampled to those cells, then the MLP."""
         features = self.values
+        if member is not None:
+            if self.offsets is None:
+                raise ValueError("this decoder holds no member offsets (members=0).")
+            features = features + self.member_offset(member)
         if features.shape[0] != resolution:
             features = resample_cells(features, resolution)
         return self._decode(features, code)

@@ -189,6 +189,10 @@ class GridModulation(nn.Module):
         self.values = nn.Parameter(torch.zeros(resolution, resolution, resolution, out_dim))
         self.register_buffer("unit_box", torch.tensor([[-1.0] * 3, [1.0] * 3]))
 
+    def grids(self) -> list[nn.Parameter]:
+        """The grid parameters a coarse-to-fine schedule resamples."""
+        return [self.values]
+
     def forward(self, unit: torch.Tensor) -> torch.Tensor:
         return sample_grid(self.values, unit, self.unit_box)
 

@@ -122,9 +122,16 @@ class LatentVoxelisedMedium(Protocol):
     density_resolution: int
     """Cells per axis of the densities it modulates."""
 
-    def voxels_for(self, density: torch.Tensor, code: torch.Tensor):
+    member_offsets: int
+    """How many members hold their own feature offset (0: none)."""
+
+    def voxels_for(self, density: torch.Tensor, code: torch.Tensor, member: int | None = None):
         """The properties on cells (:class:`~nrt.modules.fields.voxel_medium.Voxels`) of a density
-        (R, R, R, 1) under ``code`` (d_z,), differentiable in both."""
+        (R, R, R, 1) under ``code`` (d_z,), with member ``member``'s offset when given,
+        differentiable in all of them."""
+
+    def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
+        """The members' offsets' mean square (their prior, before its weight)."""
 
     def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
         """Adapt to the run's ``progress`` in [0, 1] (coarse to fine); True if it changed."""

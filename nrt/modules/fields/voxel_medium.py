@@ -112,7 +112,7 @@ class VoxelMedium(NeuralMedium):
     """EA density (baked on ``density_resolution``^3 cells) times a grid modulation of
     ``resolutions[k]``^3 cells from the run's fraction ``upsample_at[k - 1]`` on.
     ``modulation(in_dim, out_dim, resolution=...)`` builds that grid (by default a
-    :class:`~nrt.modules.fields.medium.GridModulation`); its parameter ``values`` is resampled."""
+    :class:`~nrt.modules.fields.medium.GridModulation`); its ``grids()`` are resampled."""
 
     def __init__(self, effects: dict, resolutions: Sequence[int] = (8,),
                  upsample_at: Sequence[float] = (), density_resolution: int = 64,
@@ -137,16 +137,18 @@ class VoxelMedium(NeuralMedium):
         res = resolution_at(progress, self.resolutions, self.upsample_at)
         if res == self.resolution:
             return False
-        resample_parameter(self.modulation.values, optimizer, res)
+        for grid in self.modulation.grids():
+            resample_parameter(grid, optimizer, res)
         return True
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         """A checkpoint holds the modulation at the resolution its run had reached: resize the
-        grid to it before the values are loaded (the module's own hook, before its
+        grids to it before the values are loaded (the module's own hook, before its
         children's)."""
-        values = state_dict.get(prefix + "modulation.values")
-        if values is not None:
-            self.modulation.values.data = torch.zeros_like(values)
+        for name, grid in self.modulation.named_parameters():
+            saved = state_dict.get(f"{prefix}modulation.{name}")
+            if saved is not None and any(grid is g for g in self.modulation.grids()):
+                grid.data = torch.zeros_like(saved)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @torch.no_grad()
@@ -191,15 +193,17 @@ class LatentVoxelMedium(VoxelMedium):
     A shared g (``phase: hg``) is one parameter for every code, unless ``g_from_code``: then
     each code has its own, ``g = G_MAX tanh(g_shared + w . z)`` with ``w`` starting at zero
     (every code starts from the plain medium's g), as each member of a family has its own
-    g."""
+    g. With ``member_offsets`` the decoder's features carry a zero-started offset for each
+    of the ``members`` (:meth:`voxels_for` with ``member``), under the prior the stage
+    weighs (:meth:`offset_square`); a new code decodes without one."""
 
     def __init__(self, effects: dict, latent_dim: int, features: int = 16, hidden: int = 64,
                  layers: int = 1, resolutions: Sequence[int] = (8,),
                  upsample_at: Sequence[float] = (), density_resolution: int = 64,
                  init_albedo: float = 0.8, parametrization: str = "extinction",
-                 g_from_code: bool = False):
+                 g_from_code: bool = False, members: int = 0, member_offsets: bool = False):
         decoder = partial(LatentGridDecoder, latent_dim=latent_dim, features=features,
-                          hidden=hidden, layers=layers)
+                          hidden=hidden, layers=layers, members=members if member_offsets else 0)
         super().__init__(effects, resolutions, upsample_at, density_resolution, init_albedo,
                          parametrization, modulation=decoder)
         del self.density  # supplied per member and code by the stage
@@ -207,10 +211,21 @@ class LatentVoxelMedium(VoxelMedium):
         self.g_weights = (nn.Parameter(torch.zeros(latent_dim))
                           if g_from_code and self.phase == "shared" else None)
 
-    def voxels_for(self, density: torch.Tensor, code: torch.Tensor) -> Voxels:
-        """The properties of a density (R, R, R, 1) modulated under ``code`` (d_z,), on the
-        density's cells (differentiable in the density, the decoder and the code)."""
-        h = self.modulation.on_cells(density.shape[0], code)
+    @property
+    def member_offsets(self) -> int:
+        """How many members hold a feature offset (0: none)."""
+        return self.modulation.members
+
+    def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
+        """The mean over ``members`` (None: all) of the mean over cells of ``|offset_k|^2``."""
+        return self.modulation.offset_square(members)
+
+    def voxels_for(self, density: torch.Tensor, code: torch.Tensor,
+                   member: int | None = None) -> Voxels:
+        """The properties of a density (R, R, R, 1) modulated under ``code`` (d_z,), with
+        member ``member``'s feature offset when given, on the density's cells
+        (differentiable in the density, the decoder, the offset and the code)."""
+        h = self.modulation.on_cells(density.shape[0], code, member)
         if self.g_weights is None:
             return self.compose(density, h)
         return self.compose(density, h, self.g_shared + self.g_weights @ code.to(h))

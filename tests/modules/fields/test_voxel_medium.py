@@ -71,3 +71,45 @@ def test_a_latent_medium_gives_each_code_its_own_g_only_when_asked(g_from_code):
         expected = G_MAX * torch.tanh(medium.g_shared + medium.g_weights @ a)
     torch.testing.assert_close(ga, expected)
     assert abs(float(ga - gb)) > 1e-3 and abs(float(ga)) < G_MAX
+
+
+def test_member_offsets_shift_each_members_features_and_follow_the_schedule():
+    """``member_offsets``: member k's outputs are the decoder's MLP on ``f(x) + offset_k(x)``
+    (a new code reads ``f(x)`` alone); the gradient of member k's medium reaches its own
+    offset only; the offsets' prior is the mean over members and cells of ``|offset_k|^2``;
+    a doubling resamples the offsets with the features, and a state saved at the finer grid
+    loads into a fresh medium."""
+    torch.manual_seed(4)
+    k_members, features = 3, 5
+    medium = LatentVoxelMedium({"phase": "hg", "chromatic": True}, latent_dim=2,
+                               features=features, resolutions=[4, 8], upsample_at=[0.5],
+                               density_resolution=8, members=k_members, member_offsets=True)
+    decoder = medium.modulation
+    assert medium.member_offsets == k_members and not decoder.offsets.any()
+    with torch.no_grad():
+        decoder.net[-1].weight.normal_(0, 0.5)  # a trained output layer
+        decoder.offsets.normal_(0, 0.2)
+    code, density = torch.randn(2), torch.rand(8, 8, 8, 1) + 0.5
+    torch.testing.assert_close(  # member 1's features are shifted by its own offset
+        decoder.on_cells(4, code, 1),
+        decoder._decode(decoder.values + decoder.offsets[..., features:2 * features], code))
+    assert not torch.allclose(decoder.on_cells(4, code, 1), decoder.on_cells(4, code))
+    medium.voxels_for(density, code, 1).stacked.sum().backward()
+    grad = decoder.offsets.grad.reshape(4, 4, 4, k_members, features).abs().sum((0, 1, 2, 4))
+    assert grad[1] > 0 and grad[0] == 0 and grad[2] == 0
+    per_member = decoder.offsets.detach().reshape(64, k_members, features).square().sum(-1)
+    torch.testing.assert_close(medium.offset_square(), per_member.mean())
+    torch.testing.assert_close(medium.offset_square(torch.tensor([0, 2])),
+                               per_member[:, [0, 2]].mean())
+    assert medium.follow_schedule(0.6, None) and medium.resolution == 8
+    assert decoder.offsets.shape == (8, 8, 8, k_members * features)
+    fresh = LatentVoxelMedium({"phase": "hg", "chromatic": True}, latent_dim=2,
+                              features=features, resolutions=[4, 8], upsample_at=[0.5],
+                              density_resolution=8, members=k_members, member_offsets=True)
+    fresh.load_state_dict(medium.state_dict())
+    assert torch.equal(fresh.modulation.offsets, decoder.offsets)
+    plain = LatentVoxelMedium({"phase": "hg", "chromatic": True}, latent_dim=2,
+                              resolutions=[4], density_resolution=8, members=k_members)
+    assert plain.member_offsets == 0 and plain.modulation.offsets is None
+    with pytest.raises(ValueError, match="no member offsets"):
+        plain.voxels_for(density, code, 0)
