@@ -354,7 +354,8 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     family._step = None  # the prior over every member, not the last step's
     expected = family.offset_prior_weight * decoder.offsets.detach().square().mean() \
         * decoder.features
-    assert float(family.priors()["offset_prior"]) == pytest.approx(float(expected), rel=1e-5)
+    assert float(family.priors()["offset_prior"].detach()) == pytest.approx(float(expected),
+                                                                           rel=1e-5)
     gt = truths(run["dm"])[1]
     own = property_mse(family.member_property_grids(1, gt["g"].shape[0]), gt)
     assert run["metrics"]["val/mse_sigma_t_x100_member1"] == pytest.approx(
