@@ -58,6 +58,12 @@ CONFIGS = {
     # decoders' shared family, as a single-scene medium's free grid does
     "two_a_step_dim16_offsets": ["data.members_per_step=2", "budget.rte.steps=4500",
                                  "mode.latent.dim=16", "mode.latent.member_offsets=true"],
+    # free offsets (no prior) for each member's medium and light: as free per member as
+    # single-scene stage 2's grids, whether the shared decoders are what holds members back
+    "two_a_step_dim16_free_offsets": ["data.members_per_step=2", "budget.rte.steps=4500",
+                                      "mode.latent.dim=16", "mode.latent.member_offsets=true",
+                                      "mode.latent.offset_prior_weight=0",
+                                      "mode.latent.light_offsets=true"],
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
 PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")

@@ -248,8 +248,8 @@ def check_mode(cfg: DictConfig) -> None:
     """Refuse a mode that does not fit the scene or stage (:func:`check_mode_fits`), and
     latent settings no run can use, before anything is built or loaded: ``mode.latent``
     holds counts >= 1, a non-negative ``init_std``, ``prior_weight`` and
-    ``offset_prior_weight``, a positive ``lr`` and booleans ``input`` and
-    ``member_offsets``."""
+    ``offset_prior_weight``, a positive ``lr`` and booleans ``input``,
+    ``member_offsets`` and ``light_offsets``."""
     if not check_mode_fits(cfg):
         return
     single = [name for name, unit in check_objectives(cfg).items() if not unit.families]
@@ -278,7 +278,9 @@ def check_mode(cfg: DictConfig) -> None:
     for name, what in (("input", "whether stage 1's density MLP reads the code beside the "
                                  "features"),
                        ("member_offsets", "whether each member's stage-2 medium reads its own "
-                                          "feature offset")):
+                                          "feature offset"),
+                       ("light_offsets", "whether each member's stage-2 light reads its own "
+                                         "feature offset")):
         if not isinstance(latent.get(name, False), bool):
             raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be true or false "
                               f"({what}).")

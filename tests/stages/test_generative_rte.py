@@ -333,8 +333,10 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     shared features on the coarse-to-fine schedule, moved by its member's steps only and
     pulled toward zero by the logged ``offset_prior``. Validation and export score the
     member's medium with its offset, a new code decodes without one, and a checkpoint
-    written at the final resolution reloads the offsets exactly."""
-    overrides = (*SHORT, "mode.latent.member_offsets=true", "data.members_per_step=2")
+    written at the final resolution reloads the offsets exactly. With
+    ``light_offsets=true`` each member's light reads its own offset too."""
+    overrides = (*SHORT, "mode.latent.member_offsets=true", "mode.latent.light_offsets=true",
+                 "data.members_per_step=2")
     fresh = hydra.utils.instantiate(stage2_config(family_dir, short_ea, *overrides).model,
                                     _convert_="all").scenes
     assert fresh.medium.member_offsets == K
@@ -351,6 +353,11 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
         own = family.member_property_grids(k, 16)["sigma_s"]
         assert not torch.equal(own, family.property_grids_for(family.codes[k], 16)["sigma_s"])
     assert run["metrics"]["train/offset_prior"] > 0
+    light = run["model"].light
+    for k in range(K):  # each member's light reads its own moved offset
+        assert light.decoder.member_offset(k).abs().max() > 0, k
+        code = family.codes[k].detach()
+        assert not torch.equal(light.member(k, code).coefficients, light.decode(code))
     family._step = None  # the prior over every member, not the last step's
     expected = family.offset_prior_weight * decoder.offsets.detach().square().mean() \
         * decoder.features

@@ -140,15 +140,18 @@ class LatentSHGridLightField(nn.Module):
     of x concatenated with a code z (:class:`~nrt.modules.fields.latent_grid.LatentGridDecoder`:
     ``features`` channels, an MLP of ``layers`` hidden layers of width ``hidden``, zero at
     the start as the plain field is), and each member keeps its own uncollided cache.
-    :meth:`member` gives one member's light as an :class:`SHGrid`."""
+    :meth:`member` gives one member's light as an :class:`SHGrid`. With ``member_offsets``
+    each member's light also reads a feature offset of its own (zero at the start, free:
+    only the members' media are ever sampled)."""
 
     def __init__(self, members: int, latent_dim: int, degree: int = 2, resolution: int = 16,
                  features: int = 16, hidden: int = 64, layers: int = 1,
-                 effects: dict | None = None):
+                 effects: dict | None = None, member_offsets: bool = False):
         super().__init__()
         self.degree = sh_degree(degree, resolution, effects)
         k = 3 * num_coefficients(self.degree)
-        self.decoder = LatentGridDecoder(3, k, latent_dim, resolution, features, hidden, layers)
+        self.decoder = LatentGridDecoder(3, k, latent_dim, resolution, features, hidden, layers,
+                                         members=members if member_offsets else 0)
         self.register_buffer("uncollided",
                              torch.zeros(members, resolution, resolution, resolution, k))
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
@@ -158,12 +161,15 @@ class LatentSHGridLightField(nn.Module):
     def resolution(self) -> int:
         return self.uncollided.shape[1]
 
-    def decode(self, code: torch.Tensor) -> torch.Tensor:
-        """The coefficients (R, R, R, 3 (degree + 1)^2) that code ``code`` (d_z,) decodes to."""
-        return self.decoder.on_cells(self.resolution, code)
+    def decode(self, code: torch.Tensor, member: int | None = None) -> torch.Tensor:
+        """The coefficients (R, R, R, 3 (degree + 1)^2) that code ``code`` (d_z,) decodes to
+        (with member ``member``'s feature offset when given)."""
+        return self.decoder.on_cells(self.resolution, code, member)
 
     def member(self, index: int, code: torch.Tensor) -> SHGrid:
-        """Member ``index``'s light: the coefficients of ``code`` (differentiable in the
-        decoder and the code) and the member's uncollided cache (a view of the buffer)."""
-        return SHGrid(self.decode(code), self.uncollided[index], self.degree, self.bbox,
-                      self.radiance_scale)
+        """Member ``index``'s light: the coefficients of ``code`` (and the member's offset,
+        where the field holds them; differentiable in the decoder and the code) and the
+        member's uncollided cache (a view of the buffer)."""
+        offset = index if self.decoder.members else None
+        return SHGrid(self.decode(code, offset), self.uncollided[index], self.degree,
+                      self.bbox, self.radiance_scale)
