@@ -326,6 +326,8 @@ def test_a_run_of_two_members_a_step_trains_every_member(family_dir, short_ea, t
     assert all(f"val/psnr_member{k}" in run["metrics"] for k in range(K))
 
 
+@pytest.mark.slow  # a training of its own (~40 s on 2 shared cores); the unit test of the
+# offsets (tests/modules/fields/test_voxel_medium.py) stays in the fast tier
 def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, short_ea,
                                                                     tmp_path):
     """``mode.latent.member_offsets=true``: each member's medium reads its own feature
