@@ -19,11 +19,11 @@ latent code per family member and a decoder from any code to a medium
    ``n`` media (the samples' image and crop counts; fresh crop positions on repeats), are
    scored the same way (``*_truth``): what a generator that reproduced its training
    members would score at these counts, FID's bias at this size. With
-   ``recon_reference`` the members' reconstructions (each decoded from its own learned
-   code) are rendered and scored the same way, with the true media's render seeds
-   (``*_recon``): truth -> recon is what the reconstruction loses, recon -> samples what
-   sampling new codes adds;
-5. scores each member's reconstruction from its own code against its ground truth
+   ``recon_reference`` the members' reconstructions (each member's own medium, from its
+   learned code and whatever the run keeps per member) are rendered and scored the same
+   way, with the true media's render seeds (``*_recon``): truth -> recon is what the
+   reconstruction loses, recon -> samples what sampling new codes adds;
+5. scores each member's reconstruction (its own medium) against its ground truth
    (property MSE x 10^2, ``recon_mse_<property>_x100`` the mean over members);
 6. draws a picture of the samples per sky and a strip of media decoded along
    ``z(t) = (1 - t) z_a + t z_b`` between two learned codes, with each step's property MSE
@@ -191,13 +191,11 @@ def check_medium(grids: Mapping[str, torch.Tensor], what: str) -> dict[str, torc
     return out
 
 
-def decode(model: LatentMediumModel, code: torch.Tensor | int, resolution: int, what: str
+def decode(model: LatentMediumModel, code: torch.Tensor, resolution: int, what: str
            ) -> dict[str, torch.Tensor]:
-    """The checked medium of ``code`` (d_z,), or of member ``code`` (an int), on
-    ``resolution``^3 cells."""
+    """The checked medium of ``code`` (d_z,) on ``resolution``^3 cells."""
     with torch.no_grad():
-        grids = (model.member_property_grids(code, int(resolution)) if isinstance(code, int)
-                 else model.property_grids_for(code.detach().float().cpu(), int(resolution)))
+        grids = model.property_grids_for(code.detach().float().cpu(), int(resolution))
     return check_medium(grids, what)
 
 
@@ -240,11 +238,14 @@ def fid_score(fid: FID, real: torch.Tensor, fake: torch.Tensor) -> float:
 
 def reconstruction(model: LatentMediumModel, data: FamilyData, resolution: int
                    ) -> tuple[list[dict], list[dict[str, torch.Tensor]]]:
-    """Each member's own medium (decoded from its own code) against its ground truth: a row
-    per member (``member``, ``name``, ``mse_<property>_x100``) and the decoded grids."""
+    """Each member's own medium (its code, and whatever the run keeps per member) against
+    its ground truth: a row per member (``member``, ``name``, ``mse_<property>_x100``) and
+    the decoded grids."""
     rows, media = [], []
     for k, (name, truth) in enumerate(zip(model.member_names(), data.truths, strict=True)):
-        grids = decode(model, k, resolution, f"member {k} ({name})")
+        with torch.no_grad():
+            grids = check_medium(model.member_property_grids(k, int(resolution)),
+                                 f"member {k} ({name})")
         rows.append({"member": k, "name": name,
                      **property_metrics(grids, truth, data.effects)})
         media.append(grids)

@@ -145,9 +145,10 @@ class VoxelMedium(NeuralMedium):
         """A checkpoint holds the modulation at the resolution its run had reached: resize the
         grids to it before the values are loaded (the module's own hook, before its
         children's)."""
+        resampled = {id(g) for g in self.modulation.grids()}
         for name, grid in self.modulation.named_parameters():
             saved = state_dict.get(f"{prefix}modulation.{name}")
-            if saved is not None and any(grid is g for g in self.modulation.grids()):
+            if saved is not None and id(grid) in resampled:
                 grid.data = torch.zeros_like(saved)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
