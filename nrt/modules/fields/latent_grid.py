@@ -15,6 +15,8 @@ schedule of :mod:`nrt.modules.fields.coarse_to_fine` resamples it as it resample
 With ``members`` K > 0 the decoder also holds a feature offset per member (``offsets``,
 the K offsets side by side on the channels of one grid, zero at the start, resampled with
 ``values``): member k's outputs read ``f(x) + offset_k(x)``, a new code's ``f(x)`` alone.
+:func:`fold_offsets` fits the shared features and MLP to what the members' codes and
+offsets decode, so that a new code reads the members' detail too, and zeroes the offsets.
 """
 
 from __future__ import annotations
@@ -87,11 +89,9 @@ class LatentGridDecoder(nn.Module):
         per_member = per_member.sum(-1).mean(0)
         return per_member.mean() if members is None else per_member[members].mean()
 
-    def on_cells(self, resolution: int, code: torch.Tensor, member: int | None = None
-                 ) -> torch.Tensor:
-        """Outputs (R, R, R, out_dim) at the centres of ``resolution``^3 cells, ``[z, y, x]``,
-        under one code (d_z,): the features (plus member ``member``'s offset, when given)
-        resampled to those cells, then the MLP."""
+    def cell_features(self, resolution: int, member: int | None = None) -> torch.Tensor:
+        """The features (plus member ``member``'s offset, when given) at the centres of
+        ``resolution``^3 cells (R, R, R, features), ``[z, y, x]``."""
         features = self.values
         if member is not None:
             if self.offsets is None:
@@ -99,4 +99,56 @@ class LatentGridDecoder(nn.Module):
             features = features + self.member_offset(member)
         if features.shape[0] != resolution:
             features = resample_cells(features, resolution)
-        return self._decode(features, code)
+        return features
+
+    def on_cells(self, resolution: int, code: torch.Tensor, member: int | None = None
+                 ) -> torch.Tensor:
+        """Outputs (R, R, R, out_dim) at the centres of ``resolution``^3 cells, ``[z, y, x]``,
+        under one code (d_z,): the features (plus member ``member``'s offset, when given)
+        resampled to those cells (:meth:`cell_features`), then the MLP."""
+        return self._decode(self.cell_features(resolution, member), code)
+
+def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch.Tensor,
+                 steps: int, lr: float) -> tuple[float, float]:
+    """Fit ``decoder``'s shared features and MLP so that each member's code alone decodes
+    what its code and its offset decode, then zero the offsets.
+
+    ``codes`` (K, d_z) are the members' codes (held fixed); ``weights`` (K, R, R, R, 1) >= 0
+    weigh the squared output error on each member's R^3 cells (a medium passes its density:
+    where it is zero the outputs do not matter). The objective is the mean over members of
+    ``sum_x w_k(x) |MLP([f(x), z_k]) - MLP_0([f_0(x) + offset_k(x), z_k])|^2 / sum_x w_k(x)``
+    (MLP_0, f_0: the decoder before the fit), ``steps`` Adam steps from the decoder as it is,
+    the rate falling from ``lr`` to zero on a cosine. Returns the objective before and after
+    the fit."""
+    if decoder.offsets is None:
+        raise ValueError("this decoder holds no member offsets (members=0).")
+    members, resolution = codes.shape[0], weights.shape[1]
+    codes, weights = codes.detach(), weights.detach().reshape(members, -1, 1)
+    # the cells each member weighs: the objective reads the decoder there only
+    cells = [torch.nonzero(weights[k, :, 0] > 0).squeeze(1) for k in range(members)]
+    weights = [weights[k, cells[k]] for k in range(members)]
+    norm = [w.sum().clamp_min(1e-12) for w in weights]
+    with torch.no_grad():
+        targets = [decoder._decode(decoder.cell_features(resolution, k).reshape(
+            -1, decoder.features)[cells[k]], codes[k]) for k in range(members)]
+
+    def objective() -> torch.Tensor:
+        shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
+        errors = [(weights[k] * (decoder._decode(shared[cells[k]], codes[k]) - targets[k])
+                   .square()).sum() / norm[k] for k in range(members)]
+        return torch.stack(errors).mean()
+
+    with torch.no_grad():
+        start = float(objective())
+    optimiser = torch.optim.Adam([decoder.values, *decoder.net.parameters()], lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, max(steps, 1))
+    for _ in range(steps):
+        optimiser.zero_grad(set_to_none=True)
+        objective().backward()
+        optimiser.step()
+        schedule.step()
+    with torch.no_grad():
+        decoder.offsets.zero_()
+        end = float(objective())
+    decoder.zero_grad(set_to_none=True)
+    return start, end
