@@ -109,7 +109,8 @@ class LatentGridDecoder(nn.Module):
         return self._decode(self.cell_features(resolution, member), code)
 
 def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch.Tensor,
-                 steps: int, lr: float) -> tuple[float, float]:
+                 steps: int, lr: float, cells_per_member: int = 4096, seed: int = 0
+                 ) -> tuple[float, float]:
     """Fit ``decoder``'s shared features and MLP so that each member's code alone decodes
     what its code and its offset decode, then zero the offsets.
 
@@ -117,34 +118,43 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
     weigh the squared output error on each member's R^3 cells (a medium passes its density:
     where it is zero the outputs do not matter). The objective is the mean over members of
     ``sum_x w_k(x) |MLP([f(x), z_k]) - MLP_0([f_0(x) + offset_k(x), z_k])|^2 / sum_x w_k(x)``
-    (MLP_0, f_0: the decoder before the fit), ``steps`` Adam steps from the decoder as it is,
-    the rate falling from ``lr`` to zero on a cosine. Returns the objective before and after
-    the fit."""
+    (MLP_0, f_0: the decoder before the fit). Each of the ``steps`` Adam steps estimates it
+    without bias from ``cells_per_member`` cells of each member drawn in proportion to
+    ``w_k`` (generator seeded with ``seed``), from the decoder as it is, the rate falling
+    from ``lr`` to zero on a cosine. Returns the objective, over every cell, before and
+    after the fit."""
     if decoder.offsets is None:
         raise ValueError("this decoder holds no member offsets (members=0).")
     members, resolution = codes.shape[0], weights.shape[1]
-    codes, weights = codes.detach(), weights.detach().reshape(members, -1, 1)
-    # the cells each member weighs: the objective reads the decoder there only
-    cells = [torch.nonzero(weights[k, :, 0] > 0).squeeze(1) for k in range(members)]
-    weights = [weights[k, cells[k]] for k in range(members)]
-    norm = [w.sum().clamp_min(1e-12) for w in weights]
+    codes, weights = codes.detach(), weights.detach().reshape(members, -1)
+    weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
     with torch.no_grad():
-        targets = [decoder._decode(decoder.cell_features(resolution, k).reshape(
-            -1, decoder.features)[cells[k]], codes[k]) for k in range(members)]
+        targets = [decoder.on_cells(resolution, codes[k], k).reshape(weights.shape[1], -1)
+                   for k in range(members)]
 
-    def objective() -> torch.Tensor:
+    def error(k: int, shared: torch.Tensor, cells: torch.Tensor | None) -> torch.Tensor:
+        """Member k's squared output error on ``cells`` (all: None), (cells, out_dim)."""
+        at = slice(None) if cells is None else cells
+        return (decoder._decode(shared[at], codes[k]) - targets[k][at]).square()
+
+    def objective() -> torch.Tensor:  # every cell, weighed
         shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
-        errors = [(weights[k] * (decoder._decode(shared[cells[k]], codes[k]) - targets[k])
-                   .square()).sum() / norm[k] for k in range(members)]
-        return torch.stack(errors).mean()
+        return torch.stack([(weights[k, :, None] * error(k, shared, None)).sum()
+                            for k in range(members)]).mean()
 
     with torch.no_grad():
         start = float(objective())
+    generator = torch.Generator().manual_seed(seed)
     optimiser = torch.optim.Adam([decoder.values, *decoder.net.parameters()], lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, max(steps, 1))
     for _ in range(steps):
         optimiser.zero_grad(set_to_none=True)
-        objective().backward()
+        shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
+        drawn = torch.multinomial(weights.cpu(), cells_per_member, replacement=True,
+                                  generator=generator).to(weights.device)
+        estimate = torch.stack([error(k, shared, drawn[k]).sum(-1).mean()
+                                for k in range(members)]).mean()
+        estimate.backward()
         optimiser.step()
         schedule.step()
     with torch.no_grad():
