@@ -134,7 +134,7 @@ class SampleSettings:
     interpolate_steps: int = 7
     picture_max_samples: int = 16
     fold_steps: int = 0
-    fold_lr: float = 5e-3
+    fold_lr: float = 0.02
 
     def check(self, members: int | None = None) -> None:
         """Refuse values no sampling can use (before anything is loaded or rendered)."""
