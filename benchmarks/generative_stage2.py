@@ -64,6 +64,10 @@ CONFIGS = {
                                       "mode.latent.dim=16", "mode.latent.member_offsets=true",
                                       "mode.latent.offset_prior_weight=0",
                                       "mode.latent.light_offsets=true"],
+    # free offsets at the default's steps, every member a step: whether they take every
+    # member below its start at `tiny` too
+    "free_offsets": ["mode.latent.member_offsets=true", "mode.latent.offset_prior_weight=0",
+                     "mode.latent.light_offsets=true"],
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
 PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")

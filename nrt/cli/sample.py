@@ -5,7 +5,10 @@ Writes into a new folder (``<run>/sample/<timestamp>-<pid>``): ``metrics.json`` 
 per member and its mean, the interpolation's MSE to its endpoints, timings),
 ``samples/sample<i>/`` (``medium_grids.npz``, Mitsuba ``volumes/``, the renders as EXR),
 ``samples_<sky>.png``, ``interpolation.png`` and ``latent_gaussian.npz``. See
-:mod:`nrt.evaluation.sample`.
+:mod:`nrt.evaluation.sample`. With ``fold.steps`` > 0 (a run with member offsets) the
+members' offsets are first folded into the shared decoder
+(:meth:`~nrt.stages.family.SceneFamily.fold_offsets`; in memory, the run is unchanged):
+samples, reconstructions and the strip then read the folded decoder.
 """
 
 from __future__ import annotations
@@ -36,7 +39,8 @@ def settings_of(cfg: DictConfig):
         fid_real_views=cfg.fid.real_views, fid_truth_reference=cfg.fid.truth_reference,
         fid_recon_reference=cfg.fid.recon_reference,
         interpolate_members=None if members is None else list(members),
-        interpolate_steps=cfg.interpolate.steps, picture_max_samples=cfg.picture.max_samples)
+        interpolate_steps=cfg.interpolate.steps, picture_max_samples=cfg.picture.max_samples,
+        fold_steps=cfg.fold.steps, fold_lr=cfg.fold.lr)
 
 
 def sample_task(cfg: DictConfig) -> dict:
@@ -61,8 +65,11 @@ def sample_task(cfg: DictConfig) -> dict:
         except NrtError as exc:
             raise NrtError(f"{exc} Or skip FID with fid.enabled=false.") from None
     model = load_generative_model(run, str(cfg.checkpoint))
+    folded = model.fold_offsets(settings.fold_steps, settings.fold_lr) \
+        if settings.fold_steps else {}
     select_variant(str(cfg.render.variant))
     result = sample_media(model, data, settings, out_dir, fid)
+    result.metrics.update(folded)
     report = {"run": str(run.path), "family": str(data.family.root),
               "skies": data.skies, "metrics": result.metrics, "members": result.members,
               "interpolation": result.interpolation,

@@ -133,6 +133,8 @@ class SampleSettings:
     interpolate_members: Sequence[int] | None = None
     interpolate_steps: int = 7
     picture_max_samples: int = 16
+    fold_steps: int = 0
+    fold_lr: float = 0.02
 
     def check(self, members: int | None = None) -> None:
         """Refuse values no sampling can use (before anything is loaded or rendered)."""
@@ -147,10 +149,14 @@ class SampleSettings:
             ("fid.n_crops", self.fid_n_crops, 1, "crops per image, >= 1"),
             ("fid.real_views", self.fid_real_views, 1, "images per member, >= 1 (null: all)"),
             ("interpolate.steps", self.interpolate_steps, 2, "media along the strip, >= 2"),
-            ("picture.max_samples", self.picture_max_samples, 1, "samples drawn, >= 1"))
+            ("picture.max_samples", self.picture_max_samples, 1, "samples drawn, >= 1"),
+            ("fold.steps", self.fold_steps, 0, "Adam steps of the offsets' fold, >= 0 (0: none)"))
             if v is not None and not whole(v, least)
             or v is None and k in ("n", "fid.n_crops", "interpolate.steps",
-                                   "picture.max_samples")]
+                                   "picture.max_samples", "fold.steps")]
+        lr = self.fold_lr
+        if isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < float("inf"):
+            bad.append(("fold.lr", lr, "the fold's Adam learning rate, a number > 0"))
         if bad:
             key, value, meaning = bad[0]
             raise NrtError(f"{key}={value!r}: must be {meaning}. "

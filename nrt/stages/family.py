@@ -41,6 +41,7 @@ their means. For other tools (``nrt-sample``) the family decodes a medium from a
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -296,6 +297,23 @@ class SceneFamily(nn.Module):
     def param_groups(self) -> list[dict]:
         """The codes at ``latent_lr``, without weight decay (the prior is their regulariser)."""
         return [{"params": [self.codes], "lr": self.latent_lr, "weight_decay": 0.0}]
+
+    def fold_offsets(self, steps: int, lr: float) -> dict[str, float]:
+        """Fold the members' feature offsets into the medium's shared decoder (the medium's
+        ``fold_offsets``, each member's cells weighed by its EA density under its code), so
+        that the decoder a new code reads carries what the members recovered; afterwards
+        every member decodes from its code alone. Returns the fit's objective before and
+        after (``fold_start``, ``fold_end``), its steps and its seconds."""
+        if not self.medium.member_offsets:
+            raise ConfigError("this run's medium holds no member offsets "
+                              "(mode.latent.member_offsets=false): there is nothing to fold.")
+        start = time.perf_counter()
+        with torch.no_grad():
+            codes = self.codes.detach()
+            density = torch.stack([self.density_for(code) for code in codes])
+        before, after = self.medium.fold_offsets(density, codes, steps, lr)
+        return {"fold_start": before, "fold_end": after, "fold_steps": float(steps),
+                "fold_s": time.perf_counter() - start}
 
     # ------------------------------------------------------- grids and export
     @torch.no_grad()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -155,6 +156,16 @@ def test_bad_shrinkage_and_too_few_codes_are_refused(bad):
         fit_latent_gaussian(torch.zeros(3, 4), shrinkage=bad)
     with pytest.raises(ConfigError, match="at least 2 codes"):
         fit_latent_gaussian(torch.zeros(1, 4))
+
+
+@pytest.mark.parametrize("settings, key", [
+    (SampleSettings(fold_steps=-1), "fold.steps=-1"),
+    (SampleSettings(fold_steps=None), "fold.steps=None"),
+    (SampleSettings(fold_lr=0.0), "fold.lr=0.0"),
+    (SampleSettings(fold_lr="fast"), "fold.lr='fast'")])
+def test_bad_fold_settings_name_their_key(settings, key):
+    with pytest.raises(NrtError, match=re.escape(key)):
+        settings.check()
 
 
 def test_invalid_media_are_refused():

@@ -335,7 +335,8 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     shared features on the coarse-to-fine schedule, moved by its member's steps only and
     pulled toward zero by the logged ``offset_prior``. Validation and export score the
     member's medium with its offset, a new code decodes without one, and a checkpoint
-    written at the final resolution reloads the offsets exactly. With
+    written at the final resolution reloads the offsets exactly; folding them into the
+    shared decoder brings the codes alone closer to the members' media. With
     ``light_offsets=true`` each member's light reads its own offset too."""
     overrides = (*SHORT, "mode.latent.member_offsets=true", "mode.latent.light_offsets=true",
                  "data.members_per_step=2")
@@ -373,6 +374,17 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     assert torch.equal(loaded.medium.modulation.offsets, decoder.offsets.detach())
     for key, value in loaded.member_property_grids(2, 16).items():
         assert torch.equal(value, family.member_property_grids(2, 16)[key]), key
+    # folding the offsets into the shared decoder (what nrt-sample's fold.steps does):
+    # the codes alone then decode closer to the members' media than before, with no offsets
+    before = [family.member_property_grids(k, 16)["sigma_t"] for k in range(K)]
+    unfolded = [float((family.property_grids_for(family.codes[k], 16)["sigma_t"] - before[k])
+                      .square().mean()) for k in range(K)]
+    fold = loaded.fold_offsets(steps=100, lr=5e-3)
+    assert fold["fold_end"] < fold["fold_start"] and fold["fold_steps"] == 100
+    assert not loaded.medium.modulation.offsets.any()
+    folded = [float((loaded.member_property_grids(k, 16)["sigma_t"] - before[k])
+                    .square().mean()) for k in range(K)]
+    assert np.mean(folded) < np.mean(unfolded), (folded, unfolded)
 
 
 def test_resume_continues_the_codes(short, family_dir, short_ea, tmp_path):

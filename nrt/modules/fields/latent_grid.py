@@ -15,6 +15,8 @@ schedule of :mod:`nrt.modules.fields.coarse_to_fine` resamples it as it resample
 With ``members`` K > 0 the decoder also holds a feature offset per member (``offsets``,
 the K offsets side by side on the channels of one grid, zero at the start, resampled with
 ``values``): member k's outputs read ``f(x) + offset_k(x)``, a new code's ``f(x)`` alone.
+:func:`fold_offsets` fits the shared features and MLP to what the members' codes and
+offsets decode, so that a new code reads the members' detail too, and zeroes the offsets.
 """
 
 from __future__ import annotations
@@ -87,11 +89,9 @@ class LatentGridDecoder(nn.Module):
         per_member = per_member.sum(-1).mean(0)
         return per_member.mean() if members is None else per_member[members].mean()
 
-    def on_cells(self, resolution: int, code: torch.Tensor, member: int | None = None
-                 ) -> torch.Tensor:
-        """Outputs (R, R, R, out_dim) at the centres of ``resolution``^3 cells, ``[z, y, x]``,
-        under one code (d_z,): the features (plus member ``member``'s offset, when given)
-        resampled to those cells, then the MLP."""
+    def cell_features(self, resolution: int, member: int | None = None) -> torch.Tensor:
+        """The features (plus member ``member``'s offset, when given) at the centres of
+        ``resolution``^3 cells (R, R, R, features), ``[z, y, x]``."""
         features = self.values
         if member is not None:
             if self.offsets is None:
@@ -99,4 +99,66 @@ class LatentGridDecoder(nn.Module):
             features = features + self.member_offset(member)
         if features.shape[0] != resolution:
             features = resample_cells(features, resolution)
-        return self._decode(features, code)
+        return features
+
+    def on_cells(self, resolution: int, code: torch.Tensor, member: int | None = None
+                 ) -> torch.Tensor:
+        """Outputs (R, R, R, out_dim) at the centres of ``resolution``^3 cells, ``[z, y, x]``,
+        under one code (d_z,): the features (plus member ``member``'s offset, when given)
+        resampled to those cells (:meth:`cell_features`), then the MLP."""
+        return self._decode(self.cell_features(resolution, member), code)
+
+def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch.Tensor,
+                 steps: int, lr: float, cells_per_member: int = 4096, seed: int = 0
+                 ) -> tuple[float, float]:
+    """Fit ``decoder``'s shared features and MLP so that each member's code alone decodes
+    what its code and its offset decode, then zero the offsets.
+
+    ``codes`` (K, d_z) are the members' codes (held fixed); ``weights`` (K, R, R, R, 1) >= 0
+    weigh the squared output error on each member's R^3 cells (a medium passes its density:
+    where it is zero the outputs do not matter). The objective is the mean over members of
+    ``sum_x w_k(x) |MLP([f(x), z_k]) - MLP_0([f_0(x) + offset_k(x), z_k])|^2 / sum_x w_k(x)``
+    (MLP_0, f_0: the decoder before the fit). Each of the ``steps`` Adam steps estimates it
+    without bias from ``cells_per_member`` cells of each member drawn in proportion to
+    ``w_k`` (generator seeded with ``seed``), from the decoder as it is, the rate falling
+    from ``lr`` to zero on a cosine. Returns the objective, over every cell, before and
+    after the fit."""
+    if decoder.offsets is None:
+        raise ValueError("this decoder holds no member offsets (members=0).")
+    members, resolution = codes.shape[0], weights.shape[1]
+    codes, weights = codes.detach(), weights.detach().reshape(members, -1)
+    weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+    with torch.no_grad():
+        targets = [decoder.on_cells(resolution, codes[k], k).reshape(weights.shape[1], -1)
+                   for k in range(members)]
+
+    def error(k: int, shared: torch.Tensor, cells: torch.Tensor | None) -> torch.Tensor:
+        """Member k's squared output error on ``cells`` (all: None), (cells, out_dim)."""
+        at = slice(None) if cells is None else cells
+        return (decoder._decode(shared[at], codes[k]) - targets[k][at]).square()
+
+    def objective() -> torch.Tensor:  # every cell, weighed
+        shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
+        return torch.stack([(weights[k, :, None] * error(k, shared, None)).sum()
+                            for k in range(members)]).mean()
+
+    with torch.no_grad():
+        start = float(objective())
+    generator = torch.Generator().manual_seed(seed)
+    optimiser = torch.optim.Adam([decoder.values, *decoder.net.parameters()], lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, max(steps, 1))
+    for _ in range(steps):
+        optimiser.zero_grad(set_to_none=True)
+        shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
+        drawn = torch.multinomial(weights.cpu(), cells_per_member, replacement=True,
+                                  generator=generator).to(weights.device)
+        estimate = torch.stack([error(k, shared, drawn[k]).sum(-1).mean()
+                                for k in range(members)]).mean()
+        estimate.backward()
+        optimiser.step()
+        schedule.step()
+    with torch.no_grad():
+        decoder.offsets.zero_()
+        end = float(objective())
+    decoder.zero_grad(set_to_none=True)
+    return start, end

@@ -133,6 +133,11 @@ class LatentVoxelisedMedium(Protocol):
     def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
         """The members' offsets' mean square (their prior, before its weight)."""
 
+    def fold_offsets(self, densities: torch.Tensor, codes: torch.Tensor, steps: int,
+                     lr: float) -> tuple[float, float]:
+        """Fit what a new code reads to the members' media (offsets included) and zero the
+        offsets; the fit's objective before and after."""
+
     def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:
         """Adapt to the run's ``progress`` in [0, 1] (coarse to fine); True if it changed."""
 

@@ -31,7 +31,7 @@ from torch import nn
 from torch.profiler import record_function
 
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
-from nrt.modules.fields.latent_grid import LatentGridDecoder
+from nrt.modules.fields.latent_grid import LatentGridDecoder, fold_offsets
 from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
 from nrt.physics.volume import GridExtinction, at_cell_centres, resample_cells, sample_grid
 
@@ -220,6 +220,14 @@ class LatentVoxelMedium(VoxelMedium):
     def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
         """The mean over ``members`` (None: all) of the mean over cells of ``|offset_k|^2``."""
         return self.modulation.offset_square(members)
+
+    def fold_offsets(self, densities: torch.Tensor, codes: torch.Tensor, steps: int,
+                     lr: float) -> tuple[float, float]:
+        """Fit the shared decoder to the members' media, offsets included, weighing each
+        member's cells by its density (K, R, R, R, 1) under its code (K, d_z), and zero the
+        offsets (:func:`~nrt.modules.fields.latent_grid.fold_offsets`): the fit's objective
+        before and after."""
+        return fold_offsets(self.modulation, codes, densities, steps, lr)
 
     def voxels_for(self, density: torch.Tensor, code: torch.Tensor,
                    member: int | None = None) -> Voxels:
