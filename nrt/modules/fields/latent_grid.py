@@ -121,8 +121,9 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
     (MLP_0, f_0: the decoder before the fit). Each of the ``steps`` Adam steps estimates it
     without bias from ``cells_per_member`` cells of each member drawn in proportion to
     ``w_k`` (generator seeded with ``seed``), from the decoder as it is, the rate falling
-    from ``lr`` to zero on a cosine. Returns the objective, over every cell, before and
-    after the fit."""
+    from ``lr`` to zero on a cosine. A fit that ends above its start (a rate too large for
+    small offsets) is undone: the shared decoder stays as it was. Returns the objective, over
+    every cell, before and after the fit."""
     if decoder.offsets is None:
         raise ValueError("this decoder holds no member offsets (members=0).")
     members, resolution = codes.shape[0], weights.shape[1]
@@ -144,6 +145,7 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
 
     with torch.no_grad():
         start = float(objective())
+        kept = [t.detach().clone() for t in (decoder.values, *decoder.net.parameters())]
     generator = torch.Generator().manual_seed(seed)
     optimiser = torch.optim.Adam([decoder.values, *decoder.net.parameters()], lr=lr)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, max(steps, 1))
@@ -160,5 +162,9 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
     with torch.no_grad():
         decoder.offsets.zero_()
         end = float(objective())
+        if end > start:  # a rate too large for offsets this small: keep the decoder as it was
+            for t, old in zip((decoder.values, *decoder.net.parameters()), kept, strict=True):
+                t.copy_(old)
+            end = start
     decoder.zero_grad(set_to_none=True)
     return start, end

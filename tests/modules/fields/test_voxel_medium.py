@@ -131,8 +131,8 @@ def test_folding_one_offset_shared_by_every_member_recovers_it_exactly():
     member exactly: the fold must find a decoder whose codes alone reproduce the members'
     media, then hold no offsets. Adam through the MLP approaches that exact fit slowly
     (measured, drawing 4096 cells a member a step: 4.3e-4 of the start after 1000 steps,
-    3.5e-4 after 2000); the test asks 1000 steps for 2e-3, 4x what they reach. The members' cells are weighed
-    by a density that is zero on half of them."""
+    3.5e-4 after 2000); the test asks 1000 steps for 2e-3, 4x what they reach. The
+    members' cells are weighed by a density that is zero on half of them."""
     torch.manual_seed(6)
     medium = folding_medium(3)
     decoder = medium.modulation
@@ -152,13 +152,20 @@ def test_folding_one_offset_shared_by_every_member_recovers_it_exactly():
 
 def test_folding_distinct_offsets_brings_the_codes_closer_to_their_members():
     """Distinct offsets: the shared decoder can only approximate them; the fold lowers the
-    density-weighted error of every code's medium against its member's, and a decoder
-    without offsets is refused."""
+    density-weighted error of every code's medium against its member's; a fit that would end
+    above its start is undone; a decoder without offsets is refused."""
     torch.manual_seed(7)
     medium = folding_medium(4)
     codes, densities = torch.randn(4, 2), torch.rand(4, 8, 8, 8, 1)
     start, end = medium.fold_offsets(densities, codes, steps=200, lr=1e-2)
     assert end < 0.5 * start, (start, end)
+    small = folding_medium(4)  # offsets of 1e-4 and a rate of 1: the fit would overshoot
+    with torch.no_grad():
+        small.modulation.offsets.mul_(5e-4)
+    shared = small.modulation.values.detach().clone()
+    start, end = small.fold_offsets(densities, codes, steps=5, lr=1.0)
+    assert end == start and torch.equal(small.modulation.values, shared)  # undone
+    assert not small.modulation.offsets.any()
     plain = LatentVoxelMedium({"phase": "hg", "chromatic": True}, latent_dim=2,
                               resolutions=[4], density_resolution=8, members=4)
     with pytest.raises(ValueError, match="no member offsets"):
