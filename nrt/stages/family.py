@@ -305,8 +305,9 @@ class SceneFamily(nn.Module):
         every member decodes from its code alone. Returns the fit's objective before and
         after (``fold_start``, ``fold_end``), its steps and its seconds."""
         if not self.medium.member_offsets:
-            raise ConfigError("this run's medium holds no member offsets "
-                              "(mode.latent.member_offsets=false): there is nothing to fold.")
+            raise ConfigError("fold.steps > 0, but this run's medium holds no member offsets "
+                              "(it was trained with mode.latent.member_offsets=false): there is "
+                              "nothing to fold. Sample it with fold.steps=0.")
         start = time.perf_counter()
         with torch.no_grad():
             codes = self.codes.detach()

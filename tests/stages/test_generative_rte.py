@@ -280,6 +280,16 @@ def test_one_decode_a_step_gives_the_gradients_of_one_decode_per_objective(short
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-4 * float(b.abs().max()) + 1e-12)
 
 
+def test_folding_a_run_without_offsets_is_refused(short):
+    """``nrt-sample fold.steps>0`` on a run trained without member offsets: a config error
+    naming the key and the fix, and the decoder left as it was."""
+    family = short["model"].scenes
+    values = family.medium.modulation.values.detach().clone()
+    with pytest.raises(ConfigError, match=re.escape("Sample it with fold.steps=0")):
+        family.fold_offsets(steps=5, lr=0.02)
+    assert torch.equal(family.medium.modulation.values, values)
+
+
 def test_a_step_of_some_members_concerns_those_members_only(short):
     """With batches of some members (``step_members``), a step decodes their media and
     lights alone, maps each ray to its member's place among them, takes the codes' prior

@@ -108,6 +108,7 @@ class LatentGridDecoder(nn.Module):
         resampled to those cells (:meth:`cell_features`), then the MLP."""
         return self._decode(self.cell_features(resolution, member), code)
 
+
 def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch.Tensor,
                  steps: int, lr: float, cells_per_member: int = 4096, seed: int = 0
                  ) -> tuple[float, float]:
