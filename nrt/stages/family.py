@@ -312,6 +312,10 @@ class SceneFamily(nn.Module):
         with torch.no_grad():
             codes = self.codes.detach()
             density = torch.stack([self.density_for(code) for code in codes])
+        if not bool((density > 0).any()):
+            raise ConfigError("fold.steps > 0, but no member of this run has density on any "
+                              "cell (its EA density is zero under every code): there is "
+                              "nothing to fold. Sample it with fold.steps=0.")
         before, after = self.medium.fold_offsets(density, codes, steps, lr)
         return {"fold_start": before, "fold_end": after, "fold_steps": float(steps),
                 "fold_s": time.perf_counter() - start}

@@ -290,6 +290,17 @@ def test_folding_a_run_without_offsets_is_refused(short):
     assert torch.equal(family.medium.modulation.values, values)
 
 
+def test_folding_members_without_density_is_refused(short, monkeypatch):
+    """``nrt-sample fold.steps>0`` on a run whose members have no density on any cell (an
+    empty EA density under every code): a config error naming the key and the fix, before
+    any fit."""
+    family = short["model"].scenes
+    monkeypatch.setattr(type(family.medium), "member_offsets", property(lambda self: 4))
+    monkeypatch.setattr(family, "density_for", lambda code: torch.zeros(4, 4, 4, 1))
+    with pytest.raises(ConfigError, match="no member of this run has density"):
+        family.fold_offsets(steps=5, lr=0.02)
+
+
 def test_a_step_of_some_members_concerns_those_members_only(short):
     """With batches of some members (``step_members``), a step decodes their media and
     lights alone, maps each ray to its member's place among them, takes the codes' prior

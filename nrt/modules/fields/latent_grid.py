@@ -122,17 +122,28 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
     (MLP_0, f_0: the decoder before the fit). Each of the ``steps`` Adam steps estimates it
     without bias from ``cells_per_member`` cells of each member drawn in proportion to
     ``w_k`` (generator seeded with ``seed``), from the decoder as it is, the rate falling
-    from ``lr`` to zero on a cosine. A fit that ends above its start (a rate too large for
-    small offsets) is undone: the shared decoder stays as it was. Returns the objective, over
-    every cell, before and after the fit."""
+    from ``lr`` to zero on a cosine. A member whose weight is zero on every cell (a medium
+    with no density) has no output that matters and leaves the objective; the mean runs over
+    the others. A fit that ends above its start (a rate too large for small offsets) is
+    undone: the shared decoder stays as it was. Returns the objective, over every cell,
+    before and after the fit."""
     if decoder.offsets is None:
         raise ValueError("this decoder holds no member offsets (members=0).")
-    members, resolution = codes.shape[0], weights.shape[1]
-    codes, weights = codes.detach(), weights.detach().reshape(members, -1)
-    weights = weights / weights.sum(1, keepdim=True).clamp_min(1e-12)
+    resolution = weights.shape[1]
+    weights = weights.detach().reshape(codes.shape[0], -1)
+    if not torch.isfinite(weights).all() or (weights < 0).any():
+        raise ValueError("the fold's weights (the members' densities) must be finite and >= 0.")
+    weighed = weights.sum(1) > 0
+    if not weighed.any():
+        raise ValueError("every member's density is zero on every cell: there is nothing to "
+                         "fold.")
+    kept_members = weighed.nonzero().flatten().tolist()
+    codes, weights = codes.detach()[weighed], weights[weighed]
+    members = codes.shape[0]
+    weights = weights / weights.sum(1, keepdim=True)
     with torch.no_grad():
-        targets = [decoder.on_cells(resolution, codes[k], k).reshape(weights.shape[1], -1)
-                   for k in range(members)]
+        targets = [decoder.on_cells(resolution, codes[i], k).reshape(weights.shape[1], -1)
+                   for i, k in enumerate(kept_members)]
 
     def error(k: int, shared: torch.Tensor, cells: torch.Tensor | None) -> torch.Tensor:
         """Member k's squared output error on ``cells`` (all: None), (cells, out_dim)."""

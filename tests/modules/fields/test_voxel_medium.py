@@ -3,9 +3,12 @@ interpolates between them."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
+from nrt.modules.fields.latent_grid import fold_offsets
 from nrt.modules.fields.medium import NeuralMedium
 from nrt.modules.fields.voxel_medium import LatentVoxelMedium, VoxelMedium
 from nrt.physics.phase import G_MAX
@@ -170,3 +173,30 @@ def test_folding_distinct_offsets_brings_the_codes_closer_to_their_members():
                               resolutions=[4], density_resolution=8, members=4)
     with pytest.raises(ValueError, match="no member offsets"):
         plain.fold_offsets(densities, codes, steps=1, lr=1e-2)
+
+
+def test_a_member_without_density_leaves_the_fold_and_the_others_still_fold():
+    """A member whose density is zero on every cell has no output that matters: the fold
+    leaves it out (no draw from an all-zero row), folds the others as far as without it, and
+    refuses weights that are zero everywhere, negative or not finite."""
+    torch.manual_seed(8)
+    codes, densities = torch.randn(4, 2), torch.rand(4, 8, 8, 8, 1)
+    densities[2] = 0.0
+    with_empty = folding_medium(4)
+    without = folding_medium(4)
+    without.load_state_dict(with_empty.state_dict())
+    start, end = with_empty.fold_offsets(densities, codes, steps=200, lr=1e-2)
+    assert math.isfinite(end) and end < 0.5 * start, (start, end)
+    keep = [0, 1, 3]  # the same fit without member 2: the same objective, start and end
+    decoder = without.modulation
+    with torch.no_grad():
+        grid = decoder.offsets.shape[:3]
+        offsets = decoder.offsets.reshape(*grid, 4, -1)[..., keep, :].reshape(*grid, -1)
+    decoder.offsets = torch.nn.Parameter(offsets.clone())
+    alone = fold_offsets(decoder, codes[keep], densities[keep], steps=200, lr=1e-2)
+    assert alone == pytest.approx((start, end), rel=1e-5)
+    for bad, match in ((torch.zeros_like(densities), "zero on every cell"),
+                       (-densities, "finite and >= 0"),
+                       (densities.masked_fill(densities > 0.5, math.nan), "finite and >= 0")):
+        with pytest.raises(ValueError, match=match):
+            folding_medium(4).fold_offsets(bad, codes, steps=1, lr=1e-2)
