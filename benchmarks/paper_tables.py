@@ -98,6 +98,27 @@ def keep_slices(run: Path, folder: Path, method: str) -> None:
                                            SLICE_CELLS))
 
 
+def time_left(later: list[tuple[str, dict, str, list[str]]], data: Path, current: str,
+              spent: list[float], prepared: list[float], budget_s: float) -> str:
+    """About how long the current run and the ``later`` ones take: each run as long as the
+    timed runs so far took on average (at first its budget and two minutes of evaluation),
+    each scene still without a record as long as the new scenes' renders and EA runs took
+    (said apart until one was measured)."""
+    each = sum(spent) / len(spent) if spent else budget_s + 120.0
+    todo = [r for r in later if not (data / r[0] / scene_name(r[0], r[1]["seed"]) /
+                                     r[2]).with_suffix(".json").is_file()]
+    scenes = {scene_name(r[0], r[1]["seed"]) for r in todo} - {current}
+    scenes = {s for s in scenes if not any(data.glob(f"*/{s}/*.json"))}
+    minutes = each * (len(todo) + 1) / 60
+    if not scenes:
+        return f"{minutes:.0f} min left"
+    new = f"{len(scenes)} new scene" + ("s" if len(scenes) > 1 else "")
+    if prepared:
+        minutes += sum(prepared) / len(prepared) * len(scenes) / 60
+        return f"{minutes:.0f} min left (with the renders and EA runs of {new})"
+    return f"{minutes:.0f} min left, and the renders and EA runs of {new}"
+
+
 def run_all(args) -> None:
     sets = load_sets(args.sets)
     ablations = args.ablations.split(",") if args.ablations else list(sets["ablations"])
@@ -116,7 +137,8 @@ def run_all(args) -> None:
                      f"{size} scenes; ask for 0 to {size}.")
     runs = planned_runs(sets, n, args.ablation_scenes, ablations, methods)
     firsts = {(s, sets["sets"][s]["scenes"][0]["seed"]) for s in n if n[s] > 0}
-    spent: list[float] = []
+    spent: list[float] = []  # seconds of each timed run with its evaluation
+    prepared: list[float] = []  # seconds of each new scene's render and EA run
     code = commit_of(ROOT)
     for i, (set_name, scene, method, stage_overrides) in enumerate(runs, 1):
         name = scene_name(set_name, scene["seed"])
@@ -124,12 +146,18 @@ def run_all(args) -> None:
         if path.with_suffix(".json").is_file():
             print(f"[{i}/{len(runs)}] {name} {method}: done already", flush=True)
             continue
-        each = sum(spent) / len(spent) if spent else args.budget_s + 120.0
-        left = each * (len(runs) - i + 1) / 60
-        print(f"[{i}/{len(runs)}] {name} {method}: training {args.budget_s:.0f} s; about "
-              f"{left:.0f} min left (EA runs of new scenes come on top)", flush=True)
+        new_scene = not any((args.data / set_name / name).glob("*.json"))
+        if new_scene:
+            print(f"[{i}/{len(runs)}] {name}: its dataset and EA run (found, or rendered and "
+                  "trained now)", flush=True)
         overrides = scene_overrides(set_name, sets["sets"][set_name]["phase"], scene)
+        start = time.perf_counter()
         ckpt = ea_checkpoint(name, args.preset, overrides, args.ea_steps)
+        if new_scene and time.perf_counter() - start > 60.0:  # rendered or trained, not found
+            prepared.append(time.perf_counter() - start)
+        print(f"[{i}/{len(runs)}] {name} {method}: training {args.budget_s:.0f} s; about "
+              f"{time_left(runs[i:], args.data, name, spent, prepared, args.budget_s)}",
+              flush=True)
         start = time.perf_counter()
         record = run_method(path, stage_overrides, overrides, ckpt, args.budget_s, args.every_s,
                             args.preset, args.out, {"set": set_name, "scene": name,

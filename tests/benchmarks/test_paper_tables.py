@@ -23,6 +23,7 @@ from benchmarks.paper_tables import (
     redraw,
     scene_name,
     scene_overrides,
+    time_left,
 )
 from nrt.data.spec import resolve_scene
 from tests.conftest import ROOT, compose_config
@@ -116,6 +117,26 @@ def test_tables_are_redrawn_from_the_recorded_files(tmp_path):
     rows = (data / "table1.csv").read_text().splitlines()
     assert len(rows) == 1 + 4 and rows[0].startswith("scene,method,mse_sigma_a_x100")
     assert not (data / "table2.md").exists()
+
+
+def test_the_time_left_counts_the_runs_to_do_and_the_scenes_still_to_prepare(tmp_path):
+    """Runs whose record exists count nothing; each run to do (and the current one) counts
+    the timed runs' mean; each other scene without any record counts the new scenes'
+    mean render and EA time once measured, and is named apart before."""
+    runs = planned_runs(SETS, {"iso": 2, "aniso": 1}, 0, [], ["rte", "dpt"])
+    assert [(r[0], r[1]["seed"], r[2]) for r in runs] == [
+        ("iso", 7001, "rte"), ("iso", 7001, "dpt"), ("iso", 7002, "rte"),
+        ("iso", 7002, "dpt"), ("aniso", 8001, "rte"), ("aniso", 8001, "dpt")]
+    record = tmp_path / "iso" / "paper_iso_7002" / "rte.json"
+    record.parent.mkdir(parents=True)
+    record.write_text("{}")  # 7002 is prepared and its rte run done
+    later = runs[1:]  # the current run: 7001's rte
+    assert time_left(later, tmp_path, "paper_iso_7001", [600.0], [300.0], 600.0) == \
+        "55 min left (with the renders and EA runs of 1 new scene)"  # 5 runs, 1 scene
+    assert time_left(later, tmp_path, "paper_iso_7001", [], [], 540.0) == \
+        "55 min left, and the renders and EA runs of 1 new scene"  # (540 + 120) x 5
+    assert time_left(runs[5:], tmp_path, "paper_aniso_8001", [600.0], [], 600.0) == \
+        "20 min left"
 
 
 @pytest.mark.slow
