@@ -1,5 +1,5 @@
-"""What the quickstart spends its minutes on: both stages as the quickstart ran them at
-``--preset`` (``cpu``), against spending the time the speed-ups saved on more stage-2 steps,
+"""What the quickstart spends its minutes on: both stages as they run at
+``--preset`` (``cpu``), against spending the same minutes on more stage-2 steps,
 more stage-1 steps, or finer photos, per scene and seed.
 
     python -m benchmarks.quickstart_spend [--options as_is,rte_steps,ea_steps,fine]

@@ -84,7 +84,7 @@ def test_plain_names_pass(name):
     ("data", "scene.name=../../somewhere", "scene.name"),
 ])
 def test_a_name_leaving_the_output_folder_writes_nothing(tmp_path, command, override, key):
-    """``nrt-train scene.name=../../somewhere`` used to write its dataset and run folders
+    """``nrt-train scene.name=../../somewhere`` would write its dataset and run folders
     outside the output folder; it is refused before any folder is made."""
     work = tmp_path / "a" / "b"
     work.mkdir(parents=True)

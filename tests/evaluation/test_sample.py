@@ -438,7 +438,7 @@ def test_real_interpolation_moves_from_one_endpoint_to_the_other(generative_run)
     so MSE_A grows faster than t^2 near one end and flatter near the other. Measured on the
     tiny family after 300 + 300 steps, over all 6 member pairs, 7 steps and the three
     properties: every step moved the right way, the smallest by 0.73 % of D (0.25 % with
-    an earlier decoder that re-baked the density without gradient; a linear blend's
+    a decoder that re-bakes the density without gradient; a linear blend's
     smallest is (1/6)^2 D = 2.8 %), and MSE_A + MSE_B never exceeded D. A reversal larger
     than 0.5 % of D, or a sum over 1.05 D, is a medium leaving the segment between the
     endpoints, not the decoder's curvature."""

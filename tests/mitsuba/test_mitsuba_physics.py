@@ -183,8 +183,8 @@ def test_camera_convention_with_an_emissive_sphere(mi):
     intensity centroid (sub-pixel) equals the centroid of the footprint-averaged coverage
     that nrt's ``pixel_rays`` see (32x32 sub-rays per pixel; quadrature error < 0.002 px).
     The projected disc's centroid is not the projected centre: (+0.003, -0.002) px for
-    pose 1 and (-0.019, +0.040) px for pose 2, which a first version of this test missed
-    (Mitsuba showed it at z ~ 4). A sample hits the sphere (radiance L) or not (0), so
+    pose 1 and (-0.019, +0.040) px for pose 2 (at z ~ 4 against Mitsuba, a test that
+    took the centre would fail). A sample hits the sphere (radiance L) or not (0), so
     each pixel's noise is binomial, var = L^2 p (1 - p) / spp with p its coverage; the
     linearised centroid SE is ~0.012 px. Tolerance 5 SE + 0.005 px. Measured over 15 seed
     pairs: |z| < 2.5. A half-pixel convention error (pixel centres at 0 instead of 0.5)

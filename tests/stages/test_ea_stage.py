@@ -133,8 +133,8 @@ def test_hard_media_train_without_nonfinite_values(tmp_path, max_extinction, nam
 def test_ea_colour_reads_the_sh_table_its_weights_were_trained_on():
     """The EA colour net's view input is the real SH table up to degree 2 without the
     Condon-Shortley phase (Sloan's "Stupid SH tricks"; constants from their square roots
-    here), which ``ea_field.py`` wrote out itself before it used :mod:`nrt.physics.sh`: the
-    order and signs are baked into trained colour weights, so a field must give the same
+    here), the basis trained colour weights are stored in: the
+    order and signs are baked into those weights, so a field must give the same
     colour from the same weights. The two bases differ by float32 rounding (~1e-7
     relative), which the MLP passes on at that relative size; 1e-6 leaves room, while the
     Condon-Shortley signs would move colours by far more. Old checkpoints load: the state

@@ -402,5 +402,5 @@ def test_cli_trains_a_family_and_resumes_in_place(family_dir):
     assert info["environments"] == ["sky0"] and "dataset_dir" not in info
     with np.load(run / "latents.npz") as latents:
         assert latents["codes"].shape == (K, 4)
-    with pytest.raises(NrtError, match="generative run"):  # nrt-eval: not yet, clearly
+    with pytest.raises(NrtError, match="generative run"):  # nrt-eval refuses it clearly
         open_run(run)

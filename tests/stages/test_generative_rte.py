@@ -56,7 +56,7 @@ SHORT = ("budget.rte.steps=24", "budget.val_every=12", "budget.val_views=1",
 PRESET_RUN = ("budget.val_every=900", "budget.val_views=1")
 """The preset's own run (tiny family at full size, 600 EA steps, 900 stage-2 steps, one
 validation at the end): the members' media told apart by their codes (slow tier, ~4 min
-on 2 shared cores). On the small test family the codes do not yet tell every member's
+on 2 shared cores). On the small test family the codes do not tell every member's
 medium apart (measured after 600 stage-2 steps: two of the four members were closer to
 another member's reconstruction than to their own, their EA densities being 5-10x off
 in scale): stage 2's convergence decides it."""
@@ -456,8 +456,9 @@ def test_the_family_ends_well_below_its_start_and_no_member_far_above_it(trained
     member ended 5 % or more below. A member's end moves by about 10 % between runs. The
     test asks the family's mean for below 0.8 of its start (the worst run's 0.71 plus one
     such move) and every member for below 1.3x its start (the worst, 1.16, plus one such
-    move): stage 2 may not yet improve a member that starts well, but it must not lose
-    one (a first version took a member from 58 to 1379)."""
+    move): stage 2 may not improve a member that starts well, but it must not lose one
+    (a decoder that re-bakes the density without gradient takes a member from 58 to
+    1379)."""
     start = hydra.utils.instantiate(trained["cfg"].model, _convert_="all").scenes
     end = trained["model"].scenes
     before, after = [], []

@@ -70,13 +70,12 @@ def test_rte_after_ea_via_cli_fits_the_photos_and_holds_the_medium(tiny_ea_run, 
     loss of every objective and the property MSEs from step 0, fits the held-out photos
     with its VRE image, and exports the medium in the ground truth's layout.
 
-    It does not yet improve the medium: over seeds 0-5 the end/start property
+    It does not improve the medium at this budget: over seeds 0-5 the end/start property
     MSE ratios were sigma_a 0.96-0.99, sigma_s 0.96-1.01, sigma_t 0.97-1.00, g 0.96-1.01,
-    so the test only bounds drift (every ratio < 1.10) and leaves improvement to a later,
-    stronger assertion. The held-out VRE PSNR was 34.35-34.72 dB (the no-scattering
-    prediction ``T E(v)``: 25.4 dB); bound 33.0 dB, ~9 sd below the worst seed. Seed 0 here
-    (torch 2.14, 2 cores) gave the same as on the 16-core machine that measured the seeds:
-    34.73 dB, sigma_t MSE x100 15.46 -> 15.40."""
+    so the test bounds drift only (every ratio < 1.10). The held-out VRE PSNR was
+    34.35-34.72 dB (the no-scattering prediction ``T E(v)``: 25.4 dB); bound 33.0 dB, ~9 sd
+    below the worst seed. Seed 0 on 2 cores (torch 2.14) gives the same as on the 16-core
+    machine that measured the seeds: 34.73 dB, sigma_t MSE x100 15.46 -> 15.40."""
     out, ea = tiny_ea_run
     assert ea.returncode == 0, ea.stderr[-3000:]
     ea_ckpt = only_run_dir(out, "ea") / "checkpoints" / "last.ckpt"

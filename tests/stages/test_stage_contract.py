@@ -1,5 +1,5 @@
 """Every stage keeps the contract of :mod:`nrt.stages.stage` that callbacks, evaluation
-and the CLI rely on (they no longer probe stages for what they offer); every stage x scene x
+and the CLI rely on (they do not probe stages for what they offer); every stage x scene x
 preset combination composes, passes the config checks and builds (a scene that differs from
 an earlier one only in its medium, at the tiny preset alone)."""
 
