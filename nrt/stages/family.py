@@ -295,8 +295,11 @@ class SceneFamily(nn.Module):
         return {"latent_norm": self.codes.detach().norm(dim=-1).mean()}
 
     def param_groups(self) -> list[dict]:
-        """The codes at ``latent_lr``, without weight decay (the prior is their regulariser)."""
-        return [{"params": [self.codes], "lr": self.latent_lr, "weight_decay": 0.0}]
+        """The codes at ``latent_lr``, without weight decay (the prior is their regulariser),
+        ramped in with the medium's rate (``model.medium_rampup``): each member's density
+        follows its code, so the codes are the media's parameters too."""
+        return [{"params": [self.codes], "lr": self.latent_lr, "weight_decay": 0.0,
+                 "ramps_in": True}]
 
     def fold_offsets(self, steps: int, lr: float) -> dict[str, float]:
         """Fold the members' feature offsets into the medium's shared decoder (the medium's

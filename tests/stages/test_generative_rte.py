@@ -71,7 +71,8 @@ def stage2_config(family: Path, ea_ckpt: Path | None, *overrides: str, stage: st
 
 
 def train_stage2(family: Path, ea_ckpt: Path | None, checkpoint_dir: Path, *overrides: str,
-                 resume: Path | None = None, stage: str = "rte", small: bool = True) -> dict:
+                 resume: Path | None = None, stage: str = "rte", small: bool = True,
+                 extra_callbacks: tuple[L.Callback, ...] = ()) -> dict:
     """A generative stage (2, or 1 with ``stage="ea"``) trained in-process on a family (the
     small test family, or with ``small=False`` the preset's) as nrt-train builds it:
     ``model``, ``dm``, ``trainer``, ``metrics`` (the last validation's) and ``ckpt`` (its
@@ -85,6 +86,7 @@ def train_stage2(family: Path, ea_ckpt: Path | None, checkpoint_dir: Path, *over
     callbacks.append(ModelCheckpoint(dirpath=checkpoint_dir, save_last=True, save_top_k=0,
                                      monitor=None,
                                      every_n_train_steps=cfg.budget.checkpoint_every))
+    callbacks.extend(extra_callbacks)
     trainer = L.Trainer(max_steps=cfg.stage.steps, accelerator="cpu", logger=False,
                         enable_progress_bar=False, inference_mode=False,
                         num_sanity_val_steps=0, callbacks=callbacks)
@@ -345,6 +347,35 @@ def test_a_run_of_two_members_a_step_trains_every_member(family_dir, short_ea, t
     start = load_generative_ea(str(short_ea))[2]
     assert ((family.codes.detach() - start).norm(dim=-1) > 0).all()
     assert all(f"val/psnr_member{k}" in run["metrics"] for k in range(K))
+
+
+class RecordShares(L.Callback):
+    """Per training step, the medium's and the codes' rates as shares of their configured
+    rates (the decay and any ramp)."""
+
+    def __init__(self):
+        self.shares: list[tuple[float, float]] = []
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        groups = trainer.optimizers[0].param_groups
+        codes = next(g for g in groups if g["params"] == [pl_module.scenes.codes])
+        medium = next(g for g in groups if g.get("ramps_in") and g is not codes)
+        self.shares.append((medium["lr"] / medium["initial_lr"],
+                            codes["lr"] / codes["initial_lr"]))
+
+
+def test_the_codes_rate_ramps_in_with_the_mediums(family_dir, short_ea, tmp_path):
+    """``model.medium_rampup``: each member's density follows its code, so the codes' rate
+    ramps in with the medium's (0 through the light's warm-up, then rising to the decayed
+    rate), rather than taking full-rate Adam steps on fresh moments when the photos start."""
+    record = RecordShares()
+    train_stage2(family_dir, short_ea, tmp_path, *SHORT, "budget.rte.light_warmup=0.25",
+                 "model.medium_rampup=0.5", "model.lr_final_factor=1",  # no decay: the ramp alone
+                 extra_callbacks=(record,))
+    medium, codes = zip(*record.shares, strict=True)
+    assert codes == pytest.approx(medium, rel=1e-9)
+    assert codes[0] == 0.0 and list(codes) == sorted(codes) and codes[-1] == 1.0, codes
+    assert sum(0 < c < 1 for c in codes) >= 5, codes
 
 
 @pytest.mark.slow  # a training of its own (~40 s on 2 shared cores); the unit test of the
