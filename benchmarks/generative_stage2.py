@@ -64,6 +64,12 @@ CONFIGS = {
                                       "mode.latent.dim=16", "mode.latent.member_offsets=true",
                                       "mode.latent.offset_prior_weight=0",
                                       "mode.latent.light_offsets=true"],
+    # twice `tiny`'s 900 steps, every member a step: each of its K = 4 members then sees
+    # half the photo rays a single-scene run of 900 steps gives one scene, not a quarter
+    "twice_the_steps_tiny": ["budget.rte.steps=1800"],
+    # the medium's and the codes' rates ramped in over a quarter of the run after the light's
+    # warm-up: their first full-rate Adam steps move every member's medium at once
+    "medium_rampup": ["model.medium_rampup=0.25"],
     # free offsets at the default's steps, every member a step: whether they take every
     # member below its start at `tiny` too
     "free_offsets": ["mode.latent.member_offsets=true", "mode.latent.offset_prior_weight=0",
