@@ -70,6 +70,8 @@ CONFIGS = {
     # the medium's and the codes' rates ramped in over a quarter of the run after the light's
     # warm-up: their first full-rate Adam steps move every member's medium at once
     "medium_rampup": ["model.medium_rampup=0.25"],
+    # half the medium's rate: whether a member that starts well drifts less
+    "half_medium_rate": ["model.lr.medium=1.0e-2"],
     # free offsets at the default's steps, every member a step: whether they take every
     # member below its start at `tiny` too
     "free_offsets": ["mode.latent.member_offsets=true", "mode.latent.offset_prior_weight=0",

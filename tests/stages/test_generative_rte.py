@@ -486,7 +486,7 @@ def test_the_familys_mean_falls_and_no_member_ends_far_above_its_start(trained):
     0.82 / 0.87 / 0.68, 0.75 / 0.38 / 0.74. The family's mean ended at 0.60, 0.69, 0.71,
     0.70, 0.63 and 0.81 of its start: mean 0.69, standard deviation 0.07. From that start
     stage 2 does not take every member below it (member 0 starts at 14-19 and ends at
-    0.85-1.16x, wandering by 2-9 % between validations: docs/generative.md). The test asks
+    0.85-1.16x, wandering by up to 9 % between validations: docs/generative.md). The test asks
     the family's mean for below 0.9 of its start (three deviations above the six runs'
     mean) and every member for below 1.3x its start (the worst, 1.16, plus a member's
     move of about 10 % between runs): stage 2 may not improve a member that starts well,
