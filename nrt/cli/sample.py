@@ -5,7 +5,8 @@ Writes into a new folder (``<run>/sample/<timestamp>-<pid>``): ``metrics.json`` 
 per member and its mean, the interpolation's MSE to its endpoints, timings),
 ``samples/sample<i>/`` (``medium_grids.npz``, Mitsuba ``volumes/``, the renders as EXR),
 ``samples_<sky>.png``, ``interpolation.png`` and ``latent_gaussian.npz``. See
-:mod:`nrt.evaluation.sample`. With ``fold.steps`` > 0 (a run with member offsets) the
+:mod:`nrt.evaluation.sample`. With ``fold.steps`` > 0 (a run with member offsets; ``auto``,
+the default: 2000 steps where the run holds offsets, none where it holds none) the
 members' offsets are first folded into the shared decoder
 (:meth:`~nrt.stages.family.SceneFamily.fold_offsets`; in memory, the run is unchanged):
 samples, reconstructions and the strip then read the folded decoder.
@@ -65,8 +66,8 @@ def sample_task(cfg: DictConfig) -> dict:
         except NrtError as exc:
             raise NrtError(f"{exc} Or skip FID with fid.enabled=false.") from None
     model = load_generative_model(run, str(cfg.checkpoint))
-    folded = model.fold_offsets(settings.fold_steps, settings.fold_lr) \
-        if settings.fold_steps else {}
+    fold_steps = settings.fold_steps_for(model.holds_member_offsets)
+    folded = model.fold_offsets(fold_steps, settings.fold_lr) if fold_steps else {}
     select_variant(str(cfg.render.variant))
     result = sample_media(model, data, settings, out_dir, fid)
     result.metrics.update(folded)

@@ -191,9 +191,14 @@ class SceneFamily(nn.Module):
         dens = self.ea.density_of_encoding(self.ea_encoding(), code)
         return dens.reshape(r, r, r, 1).clamp_min(0.0)
 
+    @property
+    def holds_member_offsets(self) -> bool:
+        """Whether the medium holds a feature offset per member (what a fold can fold)."""
+        return bool(self.medium.member_offsets)
+
     def offset_of(self, member: int) -> int | None:
         """``member`` where the medium holds the members' feature offsets, else None."""
-        return member if self.medium.member_offsets else None
+        return member if self.holds_member_offsets else None
 
     def member_medium(self, member: int):
         """Member ``member``'s medium: voxels, differentiable in the decoder, the code and the
@@ -307,7 +312,7 @@ class SceneFamily(nn.Module):
         that the decoder a new code reads carries what the members recovered; afterwards
         every member decodes from its code alone. Returns the fit's objective before and
         after (``fold_start``, ``fold_end``), its steps and its seconds."""
-        if not self.medium.member_offsets:
+        if not self.holds_member_offsets:
             raise ConfigError("fold.steps > 0, but this run's medium holds no member offsets "
                               "(it was trained with mode.latent.member_offsets=false): there is "
                               "nothing to fold. Sample it with fold.steps=0.")

@@ -30,6 +30,7 @@ from nrt.data.grids import PROPERTY_KEYS, load_property_grids
 from nrt.errors import ConfigError, NrtError
 from nrt.evaluation.latent_gaussian import auto_shrinkage, fit_latent_gaussian
 from nrt.evaluation.sample import (
+    AUTO_FOLD_STEPS,
     FamilyData,
     SampleSettings,
     check_medium,
@@ -166,6 +167,22 @@ def test_bad_shrinkage_and_too_few_codes_are_refused(bad):
 def test_bad_fold_settings_name_their_key(settings, key):
     with pytest.raises(NrtError, match=re.escape(key)):
         settings.check()
+
+
+def test_auto_folds_a_run_with_offsets_and_leaves_one_without():
+    """``fold.steps=auto`` (the default) folds exactly where there are offsets to fold; a
+    number is taken as given, whatever the run holds (0 samples the unfolded decoder)."""
+    auto = SampleSettings()
+    auto.check()
+    assert auto.fold_steps == "auto"
+    assert auto.fold_steps_for(member_offsets=True) == AUTO_FOLD_STEPS > 0
+    assert auto.fold_steps_for(member_offsets=False) == 0
+    for steps in (0, 5):
+        given = SampleSettings(fold_steps=steps)
+        given.check()
+        assert given.fold_steps_for(True) == given.fold_steps_for(False) == steps
+    with pytest.raises(NrtError, match=re.escape("fold.steps='always'")):
+        SampleSettings(fold_steps="always").check()
 
 
 def test_invalid_media_are_refused():

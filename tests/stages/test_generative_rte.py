@@ -286,6 +286,7 @@ def test_folding_a_run_without_offsets_is_refused(short):
     """``nrt-sample fold.steps>0`` on a run trained without member offsets: a config error
     naming the key and the fix, and the decoder left as it was."""
     family = short["model"].scenes
+    assert not family.holds_member_offsets  # fold.steps=auto leaves it unfolded
     values = family.medium.modulation.values.detach().clone()
     with pytest.raises(ConfigError, match=re.escape("Sample it with fold.steps=0")):
         family.fold_offsets(steps=5, lr=0.02)
@@ -434,6 +435,7 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     before = [sigma_t(family.member_property_grids(k, 16)) for k in range(K)]
     unfolded = [float((sigma_t(family.property_grids_for(family.codes[k], 16)) - before[k])
                       .square().mean()) for k in range(K)]
+    assert loaded.holds_member_offsets  # so nrt-sample's fold.steps=auto folds it
     fold = loaded.fold_offsets(steps=100, lr=1e-3)  # offsets 24 steps old: a small rate
     assert fold["fold_end"] < fold["fold_start"] and fold["fold_steps"] == 100
     assert not loaded.medium.modulation.offsets.any()
