@@ -12,11 +12,12 @@ refreshes in the profiled window and the largest components go to ``--table`` (C
 row per run. A row already in the table is not run again, so a killed benchmark continues;
 the single scene is re-run in every invocation (the ratios are taken within one run of the
 benchmark, never against a number from another day). The members of a family of K are the
-first K of the preset's family (their datasets are shared).
+first K of the preset's family (their datasets are shared). ``--setting`` names the
+generative settings both stages run under (:data:`SETTINGS`; a row records it).
 
     python -m benchmarks.generative_step_cost [--preset cpu] [--members 4,8,16]
         [--per-step all,2] [--steps 20] [--warmup 5] [--ea-steps 100]
-        [--table docs/data/generative_step_cost.csv]
+        [--setting default] [--table docs/data/generative_step_cost.csv]
 """
 
 from __future__ import annotations
@@ -34,8 +35,17 @@ from nrt.run_dirs import LAST_CKPT
 
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "docs" / "data" / "generative_step_cost.csv"
-FIELDS = ("preset", "members", "per_step", "step_ms", "single_scene_ms", "ratio",
+FIELDS = ("preset", "setting", "members", "per_step", "step_ms", "single_scene_ms", "ratio",
           "refreshes", "largest", "code")
+SETTINGS = {
+    "default": [],
+    # what recovers every member at `cpu` (docs/generative.md, "Two members a step"): codes
+    # of 16 dimensions and a free feature offset per member for its medium and its light
+    "dim16_free_offsets": ["mode.latent.dim=16", "mode.latent.member_offsets=true",
+                           "mode.latent.offset_prior_weight=0",
+                           "mode.latent.light_offsets=true"],
+}
+"""The generative settings measured, by name: their overrides of both stages' defaults."""
 
 
 def family_overrides(members: int) -> list[str]:
@@ -64,10 +74,14 @@ def largest(report: dict, n: int = 3) -> str:
     return "; ".join(f"{row['component']} {row['ms']:.1f}" for row in rows)
 
 
-def pending(rows: list[dict], preset: str, members: int, per_step: list[str]) -> list[str]:
+def pending(rows: list[dict], preset: str, members: int, per_step: list[str],
+            setting: str = "default") -> list[str]:
     """The members-a-step settings of ``per_step`` (``all`` or a number) still to run for a
-    family of ``members`` at ``preset``: neither in ``rows`` already nor above K."""
-    done = {r["per_step"] for r in rows if (r["preset"], r["members"]) == (preset, str(members))}
+    family of ``members`` at ``preset`` under ``setting``: neither in ``rows`` already (a
+    row without a setting is the default's) nor above K."""
+    done = {r["per_step"] for r in rows
+            if (r["preset"], r["members"], r.get("setting") or "default")
+            == (preset, str(members), setting)}
     return [m for m in per_step if m not in done and (m == "all" or int(m) <= members)]
 
 
@@ -79,26 +93,30 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=5)
     parser.add_argument("--ea-steps", type=int, default=100)
+    parser.add_argument("--setting", default="default", choices=list(SETTINGS))
     parser.add_argument("--table", type=Path, default=TABLE)
     args = parser.parse_args(argv)
+    setting = SETTINGS[args.setting]
     code = commit_of(ROOT)
     rows = read_table(args.table)
     single = profile(args.preset, args.steps, args.warmup, [])["step_ms"]["unprofiled"]
     print(f"single scene: {single:.1f} ms a step", flush=True)
     for k in map(int, args.members.split(",")):
-        todo = pending(rows, args.preset, k, args.per_step.split(","))
+        todo = pending(rows, args.preset, k, args.per_step.split(","), args.setting)
         if not todo:
             continue
         run, _ = train("ea", output_dir(), args.preset,
-                       [*family_overrides(k), f"budget.ea.steps={args.ea_steps}",
+                       [*family_overrides(k), *setting, f"budget.ea.steps={args.ea_steps}",
                         f"budget.val_every={args.ea_steps}"])
         for m in todo:
             per_step = "null" if m == "all" else m
             report = profile(args.preset, args.steps, args.warmup,
-                             [*family_overrides(k), f"data.members_per_step={per_step}"],
+                             [*family_overrides(k), *setting,
+                              f"data.members_per_step={per_step}"],
                              run / LAST_CKPT)
             ms = report["step_ms"]["unprofiled"]
-            row = {"preset": args.preset, "members": k, "per_step": m, "step_ms": f"{ms:.1f}",
+            row = {"preset": args.preset, "setting": args.setting, "members": k,
+                   "per_step": m, "step_ms": f"{ms:.1f}",
                    "single_scene_ms": f"{single:.1f}", "ratio": f"{ms / single:.2f}",
                    "refreshes": report["uncollided_refreshes"]["count"],
                    "largest": largest(report), "code": code}
@@ -108,8 +126,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 writer = csv.DictWriter(f, fieldnames=FIELDS)
                 writer.writeheader()
                 writer.writerows(rows)
-            print(f"K = {k}, M = {m}: {ms:.1f} ms a step, {ms / single:.2f}x the single "
-                  f"scene ({largest(report)})", flush=True)
+            print(f"{args.setting}, K = {k}, M = {m}: {ms:.1f} ms a step, "
+                  f"{ms / single:.2f}x the single scene ({largest(report)})", flush=True)
     return rows
 
 

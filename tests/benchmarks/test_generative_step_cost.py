@@ -1,12 +1,12 @@
 """benchmarks/generative_step_cost.py: the rows still to run are those neither in the table
-nor asking for more members a step than the family has, and each row names a profile's
-largest components, largest first."""
+(under the same setting) nor asking for more members a step than the family has, and each
+row names a profile's largest components, largest first."""
 
 from __future__ import annotations
 
 import pytest
 
-from benchmarks.generative_step_cost import largest, pending
+from benchmarks.generative_step_cost import SETTINGS, largest, pending
 
 pytestmark = pytest.mark.unit
 
@@ -20,6 +20,16 @@ def test_rows_already_in_the_table_or_above_k_are_not_run():
     assert pending(rows, "tiny", 4, ["all", "2"]) == ["all"]
     assert pending(rows, "tiny", 16, ["all", "2"]) == ["all", "2"]  # another K: its own rows
     assert pending([], "cpu", 2, ["all", "1", "2", "3"]) == ["all", "1", "2"]
+
+
+def test_each_setting_has_rows_of_its_own():
+    """A row without a setting is the default's; another setting's rows do not count."""
+    rows = [{"preset": "cpu", "members": "16", "per_step": "all"},
+            {"preset": "cpu", "setting": "default", "members": "16", "per_step": "2"},
+            {"preset": "cpu", "setting": "dim16_free_offsets", "members": "16", "per_step": "2"}]
+    assert pending(rows, "cpu", 16, ["all", "2"]) == []
+    assert pending(rows, "cpu", 16, ["all", "2"], "dim16_free_offsets") == ["all"]
+    assert set(SETTINGS) >= {"default", "dim16_free_offsets"} and SETTINGS["default"] == []
 
 
 def test_the_largest_components_come_first():
