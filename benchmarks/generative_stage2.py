@@ -39,6 +39,9 @@ from nrt.run_dirs import LAST_CKPT, read_run_info
 
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "docs" / "data" / "generative_stage2.csv"
+FREE_OFFSETS = ["mode.latent.member_offsets=true", "mode.latent.offset_prior_weight=0",
+                "mode.latent.light_offsets=true"]
+"""Free feature offsets (no prior) for each member's medium and light."""
 CONFIGS = {
     "default": [],
     # two members a step (each drawn member gets 8x the photo rays of a step over all 16),
@@ -61,9 +64,12 @@ CONFIGS = {
     # free offsets (no prior) for each member's medium and light: as free per member as
     # single-scene stage 2's grids, whether the shared decoders are what holds members back
     "two_a_step_dim16_free_offsets": ["data.members_per_step=2", "budget.rte.steps=4500",
-                                      "mode.latent.dim=16", "mode.latent.member_offsets=true",
-                                      "mode.latent.offset_prior_weight=0",
-                                      "mode.latent.light_offsets=true"],
+                                      "mode.latent.dim=16", *FREE_OFFSETS],
+    # the same in twice the steps: each member sees 1125 steps' photo rays, against the
+    # 1500 of a single-scene run; whether the free offsets' end (20.8 on three seeds) is
+    # the steps' or the setting's
+    "two_a_step_dim16_free_offsets_long": ["data.members_per_step=2", "budget.rte.steps=9000",
+                                           "mode.latent.dim=16", *FREE_OFFSETS],
     # twice `tiny`'s 900 steps, every member a step: each of its K = 4 members then sees
     # half the photo rays a single-scene run of 900 steps gives one scene, not a quarter
     "twice_the_steps_tiny": ["budget.rte.steps=1800"],
@@ -74,8 +80,7 @@ CONFIGS = {
     "half_medium_rate": ["model.lr.medium=1.0e-2"],
     # free offsets at the default's steps, every member a step: whether they take every
     # member below its start at `tiny` too
-    "free_offsets": ["mode.latent.member_offsets=true", "mode.latent.offset_prior_weight=0",
-                     "mode.latent.light_offsets=true"],
+    "free_offsets": FREE_OFFSETS,
 }
 """The stage-2 configurations measured, by name: their overrides of the generative defaults."""
 PROPERTIES = ("sigma_t", "sigma_s", "sigma_a", "g")
