@@ -113,6 +113,18 @@ def finished(run: Path) -> bool:
     return read_run_info(run).get("finished_step") is not None
 
 
+def unfinished_run_error(run: Path) -> str | None:
+    """Why ``run`` is no finished training run to read results from (no ``run.json``, or
+    one without ``finished_step``: a killed run), with the fix; None when it is one."""
+    if not (run / "run.json").exists():
+        return f"{run} holds no run.json; give the folder of a finished training run."
+    if not finished(run):
+        return (f"the run in {run} did not reach its end (its run.json has no "
+                "finished_step); continue it with the nrt-train overrides of its "
+                f".hydra/overrides.yaml and resume={run / LAST_CKPT}, then read it again.")
+    return None
+
+
 def newest_checkpoint(scene: str, dataset: str | None = None) -> Path | None:
     """The last checkpoint of the newest finished EA run of ``scene`` under
     :func:`output_dir` (among those trained on the dataset folder named ``dataset``, when

@@ -34,6 +34,7 @@ from benchmarks.common import (
     read_table,
     run_cli,
     run_like,
+    unfinished_run_error,
     validation_rows,
 )
 
@@ -123,11 +124,12 @@ def main() -> None:
         print(summary(read_table(args.table)))
         return
     seeds = [int(s) for s in args.seeds.split(",")]
-    if args.from_run is not None and (len(seeds) != 1
-                                      or not (args.from_run / "run.json").exists()):
-        parser.error(f"--from-run: give the folder of a finished generative stage-2 run "
-                     f"(it holds run.json; {args.from_run} does not, or --seeds names more "
-                     "than its one seed).")
+    if args.from_run is not None:
+        if len(seeds) != 1:
+            parser.error("--from-run: name the run's one seed (--seeds).")
+        problem = unfinished_run_error(args.from_run)
+        if problem:
+            parser.error(f"--from-run: {problem}")
     done = {(r["stage1"], r["config"], r["preset"], r["seed"]) for r in read_table(args.table)}
     for seed in seeds:
         if (args.stage1, args.config, args.preset, str(seed)) in done:

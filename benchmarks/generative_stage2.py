@@ -33,6 +33,7 @@ from benchmarks.common import (
     read_table,
     run_like,
     train,
+    unfinished_run_error,
     validation_rows,
 )
 from nrt.run_dirs import LAST_CKPT, read_run_info
@@ -166,9 +167,9 @@ def main() -> None:
         if len(configs) != 1 or len(seeds) != 1:
             parser.error("--from-run: name the run's one configuration (--configs) and its "
                          "seed (--seeds).")
-        if not (args.from_run / "run.json").exists():
-            parser.error(f"--from-run: {args.from_run} holds no run.json; give the folder "
-                         "of a finished generative stage-2 run.")
+        problem = unfinished_run_error(args.from_run)
+        if problem:
+            parser.error(f"--from-run: {problem}")
         append_rows(args.table, FIELDS, run_rows(args.from_run, args.stage1, configs[0],
                                          args.preset, seeds[0]))
         print(summary(read_table(args.table)))

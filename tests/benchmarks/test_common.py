@@ -1,5 +1,6 @@
 """The benchmarks' shared helpers: the EA start of a benchmark is the newest *finished* EA
-run on the same photos; a run killed before its end is never taken for one."""
+run on the same photos; a run killed before its end is never taken for one, nor read as a
+finished run's results."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import time
 
 import pytest
 
-from benchmarks.common import ea_runs, newest_checkpoint
+from benchmarks.common import ea_runs, newest_checkpoint, unfinished_run_error
 from nrt.run_dirs import LAST_CKPT, write_run_info
 
 pytestmark = pytest.mark.unit
@@ -32,3 +33,11 @@ def test_the_newest_finished_run_on_the_same_photos_is_the_start(tmp_path, monke
     assert newest_checkpoint("default", "default-aaa") == (old / LAST_CKPT).resolve()
     assert [r.name for r in ea_runs("default", "default-aaa")] == ["killed", "old"]
     assert newest_checkpoint("default", "default-ccc") is None
+
+
+def test_a_killed_run_is_refused_as_results_with_the_way_to_continue_it(tmp_path) -> None:
+    assert "holds no run.json" in unfinished_run_error(tmp_path)
+    killed = ea_run(tmp_path, "killed", "default-aaa", None, age_s=0)
+    problem = unfinished_run_error(killed)
+    assert "did not reach its end" in problem and f"resume={killed / LAST_CKPT}" in problem
+    assert unfinished_run_error(ea_run(tmp_path, "done", "default-aaa", 1500, age_s=0)) is None

@@ -1,10 +1,13 @@
 """benchmarks/generative_stage2.py: a run's rows hold every member's first and last
 validation, read alike from the CSV log and from TensorBoard; stage-1 runs are found by
-what they train; the summary counts the members below their start."""
+what they train; the summary counts the members below their start; a killed run's folder
+is refused, exit status 2, before anything is read or trained."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 from omegaconf import OmegaConf
@@ -105,3 +108,19 @@ def test_the_summary_counts_the_members_below_their_start(tmp_path) -> None:
     line = summary(read_table(table)).splitlines()[2]
     assert line == ("| default | default | cpu | 0 | 10.0 -> 15.7 | 8.0 -> 4.0 "
                     "| 1 / 3 | 3.00 | 100.0 |")
+
+
+@pytest.mark.parametrize("module", ["generative_stage2", "generative_samples"])
+def test_a_killed_run_given_as_from_run_is_refused(tmp_path, module) -> None:
+    """Both benchmarks that read a finished run refuse a killed one (run.json without
+    finished_step) with the resume command's key, and leave their table unwritten."""
+    (tmp_path / "run.json").write_text(json.dumps({"members": ["family_seed0"]}))
+    table = tmp_path / "table.csv"
+    config = ["--configs" if module == "generative_stage2" else "--config",
+              "two_a_step_dim16_free_offsets"]
+    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--from-run",
+                           str(tmp_path), *config, "--seeds", "1", "--table", str(table)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    assert "did not reach its end" in proc.stderr and "resume=" in proc.stderr
+    assert not table.exists()
