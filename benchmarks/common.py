@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nrt.cli.common import CONFIG_DIR, register_resolvers
 from nrt.data.render import dataset_name
-from nrt.run_dirs import LAST_CKPT, read_run_info, run_dataset
+from nrt.run_dirs import LAST_CKPT, RESUMED_PREFIX, read_run_info, run_dataset
 
 SCENES = {
     "default": [],
@@ -220,9 +220,19 @@ def append_rows(table: Path, fields: tuple[str, ...], rows: list[dict]) -> None:
 
 
 def metric_rows(run: Path) -> list[dict]:
-    """The rows of a run's CSV log (``csv/metrics.csv``)."""
-    with open(run / "csv" / "metrics.csv") as f:
-        return list(csv.DictReader(f))
+    """The rows of a run's CSV log: ``csv/metrics.csv``, then the log of each time it was
+    resumed (``csv/resumed-<time>/metrics.csv``, oldest first), each log replacing the rows
+    of the steps it logged again (those after the checkpoint it resumed from)."""
+    rows: list[dict] = []
+    for log in [run / "csv" / "metrics.csv",
+                *sorted((run / "csv").glob(f"{RESUMED_PREFIX}*/metrics.csv"))]:
+        with open(log) as f:
+            part = list(csv.DictReader(f))
+        steps = [int(r["step"]) for r in part if r.get("step")]
+        if steps:
+            rows = [r for r in rows if not r.get("step") or int(r["step"]) < min(steps)]
+        rows += part
+    return rows
 
 
 def validation_rows(run: Path) -> list[dict[str, float]]:
