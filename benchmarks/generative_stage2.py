@@ -71,6 +71,18 @@ CONFIGS = {
     # the steps' or the setting's
     "two_a_step_dim16_free_offsets_long": ["data.members_per_step=2", "budget.rte.steps=9000",
                                            "mode.latent.dim=16", *FREE_OFFSETS],
+    # free offsets at twice the medium's and the light's rates: each member's offsets take
+    # a step only when the member is drawn (2 of 16 steps), and the 9000-step run still falls
+    # at its end, as a rate-limited fit does (at `tiny`, half the medium's rate ends higher)
+    "two_a_step_dim16_free_offsets_fast": ["data.members_per_step=2", "budget.rte.steps=4500",
+                                           "mode.latent.dim=16", *FREE_OFFSETS,
+                                           "model.lr.medium=4.0e-2", "model.lr.light=4.0e-2"],
+    # free offsets with every rate decaying to 1/100 of its start instead of 1/10: the
+    # validations of the 9000-step run swing by up to 50 % from one to the next, and each
+    # run's last stretch, where the rate is least, brings its largest steady fall
+    "two_a_step_dim16_free_offsets_anneal": ["data.members_per_step=2", "budget.rte.steps=4500",
+                                             "mode.latent.dim=16", *FREE_OFFSETS,
+                                             "model.lr_final_factor=0.01"],
     # twice `tiny`'s 900 steps, every member a step: each of its K = 4 members then sees
     # half the photo rays a single-scene run of 900 steps gives one scene, not a quarter
     "twice_the_steps_tiny": ["budget.rte.steps=1800"],
