@@ -10,11 +10,13 @@ import subprocess
 import sys
 
 import pytest
+import yaml
 from omegaconf import OmegaConf
 from torch.utils.tensorboard import SummaryWriter
 
 from benchmarks.common import compose_train, read_table
 from benchmarks.generative_stage2 import (
+    CONFIGS,
     FIELDS,
     PROPERTIES,
     append_rows,
@@ -124,3 +126,15 @@ def test_a_killed_run_given_as_from_run_is_refused(tmp_path, module) -> None:
     assert proc.returncode == 2, proc.stderr
     assert "did not reach its end" in proc.stderr and "resume=" in proc.stderr
     assert not table.exists()
+
+
+@pytest.mark.parametrize("config", sorted(CONFIGS))
+def test_every_configuration_composes_with_its_overrides_in_place(config):
+    """Each measured configuration composes as the benchmark trains it, and every override
+    holds its value in the composed config (a key the preset or the mode set again would
+    measure something else under the configuration's name)."""
+    cfg = compose_train(["stage=rte", "preset=cpu", "scene=family", "mode=generative",
+                         *CONFIGS[config]])
+    for override in CONFIGS[config]:
+        key, value = override.split("=", 1)
+        assert OmegaConf.select(cfg, key) == yaml.safe_load(value), override
