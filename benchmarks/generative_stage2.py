@@ -83,6 +83,12 @@ CONFIGS = {
     "two_a_step_dim16_free_offsets_anneal": ["data.members_per_step=2", "budget.rte.steps=4500",
                                              "mode.latent.dim=16", *FREE_OFFSETS,
                                              "model.lr_final_factor=0.01"],
+    # and Adam stepping each member's code and offsets only on its own steps: plain Adam
+    # moves an undrawn member by its last draw's momentum, about sqrt(16 / 2) learning
+    # rates for each gradient it gets, where a single scene's parameter moves by about one
+    "two_a_step_dim16_free_offsets_anneal_per_member_adam": [
+        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
+        *FREE_OFFSETS, "model.lr_final_factor=0.01", "mode.latent.per_member_adam=true"],
     # twice `tiny`'s 900 steps, every member a step: each of its K = 4 members then sees
     # half the photo rays a single-scene run of 900 steps gives one scene, not a quarter
     "twice_the_steps_tiny": ["budget.rte.steps=1800"],

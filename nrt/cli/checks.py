@@ -249,7 +249,7 @@ def check_mode(cfg: DictConfig) -> None:
     latent settings no run can use, before anything is built or loaded: ``mode.latent``
     holds counts >= 1, a non-negative ``init_std``, ``prior_weight`` and
     ``offset_prior_weight``, a positive ``lr`` and booleans ``input``,
-    ``member_offsets`` and ``light_offsets``."""
+    ``member_offsets``, ``light_offsets`` and ``per_member_adam``."""
     if not check_mode_fits(cfg):
         return
     single = [name for name, unit in check_objectives(cfg).items() if not unit.families]
@@ -280,7 +280,9 @@ def check_mode(cfg: DictConfig) -> None:
                        ("member_offsets", "whether each member's stage-2 medium reads its own "
                                           "feature offset"),
                        ("light_offsets", "whether each member's stage-2 light reads its own "
-                                         "feature offset")):
+                                         "feature offset"),
+                       ("per_member_adam", "whether stage 2's Adam steps each member's code "
+                                           "and offsets only on the steps that draw it")):
         if not isinstance(latent.get(name, False), bool):
             raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be true or false "
                               f"({what}).")

@@ -82,7 +82,7 @@ class SceneFamily(nn.Module):
 
     def __init__(self, stage: RTEStage, members: int, latent_dim: int,
                  latent_prior_weight: float = 1e-4, latent_lr: float = 1e-2,
-                 offset_prior_weight: float = 1.0,
+                 offset_prior_weight: float = 1.0, per_member_adam: bool = False,
                  ea_field: dict | None = None, member_info: list[dict] | None = None):
         super().__init__()
         for key, value in (("scene.family.members", members), ("mode.latent.dim", latent_dim)):
@@ -97,6 +97,10 @@ class SceneFamily(nn.Module):
                               "single scenes.")
         self.latent_prior_weight = latent_prior_weight
         self.offset_prior_weight = offset_prior_weight
+        if not isinstance(per_member_adam, bool):
+            raise ConfigError(f"mode.latent.per_member_adam={per_member_adam}: must be true or "
+                              "false.")
+        self.per_member_adam = per_member_adam
         if stage.medium.member_offsets not in (0, members):
             raise ConfigError(f"the medium holds feature offsets for {stage.medium.member_offsets} "
                               f"members, but the family has scene.family.members={members}.")
@@ -305,6 +309,17 @@ class SceneFamily(nn.Module):
         follows its code, so the codes are the media's parameters too."""
         return [{"params": [self.codes], "lr": self.latent_lr, "weight_decay": 0.0,
                  "ramps_in": True}]
+
+    def member_parameters(self) -> list[tuple[nn.Parameter, int, int]]:
+        """With ``per_member_adam``: the codes (a row a member) and the medium's and the
+        light's feature offsets (a block of features a member, last axis), which Adam then
+        steps per member (:class:`~nrt.stages.member_adam.MemberAdam`); else []."""
+        if not self.per_member_adam:
+            return []
+        k = self.codes.shape[0]
+        blocks = [(self.codes, k, 0)]
+        return blocks + [(p, k, -1) for p in (*self.medium.member_blocks(),
+                                              *self.light.member_blocks())]
 
     def fold_offsets(self, steps: int, lr: float) -> dict[str, float]:
         """Fold the members' feature offsets into the medium's shared decoder (the medium's

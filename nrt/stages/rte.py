@@ -64,6 +64,7 @@ from nrt.physics.direct_light import direct_inscatter
 from nrt.physics.sky_light import sky_inscatter
 from nrt.stages.components import factory_config, stage_2_components
 from nrt.stages.coupling import AdjointCoupling, coupling_settings
+from nrt.stages.member_adam import MemberAdam, split_member_groups
 from nrt.stages.radiative_transfer import RadiativeTransferStage
 from nrt.stages.scene_source import SceneSource, scene_source_factory
 from nrt.stages.sky_lights import SkyLights
@@ -157,7 +158,8 @@ class RTEStage(RadiativeTransferStage):
         if self.learns_medium:
             groups.append({"params": list(self.medium.parameters()), "lr": lr["medium"],
                            "ramps_in": True})
-        return groups + self.scenes.param_groups()
+        return split_member_groups(groups + self.scenes.param_groups(),
+                                   self.scenes.member_parameters())
 
     def medium_ramp(self) -> float:
         """The factor of the medium's rate (:func:`~nrt.modules.fields.coarse_to_fine.ramp_in`):
@@ -165,7 +167,9 @@ class RTEStage(RadiativeTransferStage):
         return ramp_in(self.progress(), self.hparams.light_warmup, self.hparams.medium_rampup)
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam(self.param_groups())
+        groups = self.param_groups()
+        adam = MemberAdam if any("members" in g for g in groups) else torch.optim.Adam
+        opt = adam(groups)
         ramp = self.medium_ramp if self.hparams.medium_rampup > 0 else None
         sched = decaying_lr(opt, self.hparams.lr_final_factor, self.progress, ramp)
         return [opt], [{"scheduler": sched, "interval": "step"}]

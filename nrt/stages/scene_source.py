@@ -76,6 +76,11 @@ class SceneSource(Protocol):
     def param_groups(self) -> list[dict]:
         """Adam's groups of the source's own parameters, after the stage's."""
 
+    def member_parameters(self) -> list[tuple[torch.nn.Parameter, int, int]]:
+        """Parameters (of any group) that hold one block per member, as (parameter, members,
+        member axis), for Adam to step each block only on its member's steps
+        (:class:`~nrt.stages.member_adam.MemberAdam`); [] for none."""
+
     def setup(self, datamodule) -> None:
         """Once the datamodule is attached and the stage has set its boxes and skies."""
 

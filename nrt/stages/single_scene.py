@@ -76,6 +76,9 @@ class SingleScene:
     def param_groups(self) -> list[dict]:
         return []
 
+    def member_parameters(self) -> list:
+        return []
+
     def setup(self, datamodule) -> None:
         """Bake the start into a learned medium (:meth:`DensityStart.bake`), unless it holds
         one already (a resumed run loads the same values)."""

@@ -34,6 +34,7 @@ from nrt.physics.phase import G_MAX
 from nrt.physics.volume import cell_centres
 from nrt.stages.family import SceneFamily
 from nrt.stages.generative_ea import load_generative_ea
+from nrt.stages.member_adam import MemberAdam, member_blocks
 from nrt.stages.rte import RTEStage
 from tests.conftest import (
     GENERATIVE_FAMILY,
@@ -442,6 +443,62 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     folded = [float((sigma_t(loaded.member_property_grids(k, 16)) - before[k])
                     .square().mean()) for k in range(K)]
     assert np.mean(folded) < np.mean(unfolded), (folded, unfolded)
+
+
+class UndrawnMembers(L.Callback):
+    """Per step: the drawn members, whether every undrawn member's code and medium and
+    light offsets kept their values exactly, and whether a drawn one's moved (steps where
+    the coarse-to-fine schedule resamples the offsets left out)."""
+
+    def __init__(self):
+        self.steps: list[tuple[list[int], bool, bool]] = []
+
+    def values(self, stage) -> list[torch.Tensor]:
+        family = stage.scenes
+        return [family.codes.detach().clone(),
+                *(member_blocks(p.detach(), K, -1).clone()
+                  for p in (*family.medium.member_blocks(), *family.light.member_blocks()))]
+
+    def on_train_batch_start(self, trainer, stage, batch, batch_idx):
+        self._before = self.values(stage)
+        self._drawn = batch["step_members"].tolist()
+
+    def on_train_batch_end(self, trainer, stage, outputs, batch, batch_idx):
+        after = self.values(stage)
+        if [a.shape for a in after] != [b.shape for b in self._before]:
+            return  # the coarse-to-fine schedule resampled every offset this step
+        undrawn = [k for k in range(K) if k not in self._drawn]
+        kept = all(torch.equal(a[undrawn], b[undrawn]) for a, b in zip(after, self._before,
+                                                                        strict=True))
+        moved = any(not torch.equal(a[self._drawn], b[self._drawn])
+                    for a, b in zip(after, self._before, strict=True))
+        self.steps.append((self._drawn, kept, moved))
+
+
+@pytest.mark.slow  # a training of its own (~30 s on 2 shared cores); MemberAdam's own tests
+# (tests/stages/test_member_adam.py) stay in the fast tier
+@pytest.mark.parametrize("per_member", [True, False])
+def test_per_member_adam_leaves_undrawn_members_alone(family_dir, short_ea, tmp_path,
+                                                      per_member):
+    """``mode.latent.per_member_adam=true`` with two members a step: a step leaves every
+    member it did not draw exactly as it was (code, medium and light offsets) and moves
+    the ones it drew; plain Adam (false, the default) moves undrawn members too, by the
+    momentum of their last draw."""
+    record = UndrawnMembers()
+    run = train_stage2(family_dir, short_ea, tmp_path, *SHORT,
+                       "mode.latent.member_offsets=true", "mode.latent.light_offsets=true",
+                       "data.members_per_step=2", f"mode.latent.per_member_adam={per_member}",
+                       extra_callbacks=(record,))
+    optimiser = run["trainer"].optimizers[0]
+    assert isinstance(optimiser, MemberAdam) == per_member
+    trained = [(kept, moved) for _, kept, moved in record.steps if moved]
+    assert len(trained) >= 12, record.steps  # the photo objective acts after the warm-up
+    if per_member:
+        assert all(kept for kept, _ in trained), record.steps
+        codes_steps = optimiser.state[run["model"].scenes.codes]["step"]
+        assert 0 < codes_steps.sum() <= 2 * len(record.steps)
+    else:
+        assert not all(kept for kept, _ in trained), record.steps
 
 
 def test_resume_continues_the_codes(short, family_dir, short_ea, tmp_path):

@@ -76,6 +76,11 @@ class LatentGridDecoder(nn.Module):
         members' offsets."""
         return [self.values] + ([self.offsets] if self.offsets is not None else [])
 
+    def member_blocks(self) -> list[nn.Parameter]:
+        """The members' offsets (one block of ``features`` a member along the last axis), as
+        a list: [] without them."""
+        return [] if self.offsets is None else [self.offsets]
+
     def member_offset(self, member: int) -> torch.Tensor:
         """Member ``member``'s feature offset (R, R, R, features)."""
         f = self.features

@@ -112,6 +112,10 @@ class LatentScatteredLightField(Protocol):
         """Member ``index``'s light under ``code`` (d_z,), with the member's uncollided
         cache: a :class:`ScatteredLightField` for the objectives."""
 
+    def member_blocks(self) -> list[torch.nn.Parameter]:
+        """Its parameters that hold one block per member along their last axis (the members'
+        feature offsets); [] for none."""
+
 
 class LatentVoxelisedMedium(Protocol):
     """The medium of generative stage 2: a member's density on cells (the stage's, from the
@@ -132,6 +136,10 @@ class LatentVoxelisedMedium(Protocol):
 
     def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
         """The members' offsets' mean square (their prior, before its weight)."""
+
+    def member_blocks(self) -> list[torch.nn.Parameter]:
+        """Its parameters that hold one block per member along their last axis (the members'
+        feature offsets); [] for none."""
 
     def fold_offsets(self, densities: torch.Tensor, codes: torch.Tensor, steps: int,
                      lr: float) -> tuple[float, float]:

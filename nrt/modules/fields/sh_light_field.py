@@ -157,6 +157,10 @@ class LatentSHGridLightField(nn.Module):
         self.register_buffer("bbox", torch.tensor([[-1.0] * 3, [1.0] * 3]))
         self.register_buffer("radiance_scale", torch.tensor(1.0))
 
+    def member_blocks(self) -> list[nn.Parameter]:
+        """The members' feature offsets, one block a member along the last axis ([]: none)."""
+        return self.decoder.member_blocks()
+
     @property
     def resolution(self) -> int:
         return self.uncollided.shape[1]

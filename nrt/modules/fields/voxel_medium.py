@@ -217,6 +217,10 @@ class LatentVoxelMedium(VoxelMedium):
         """How many members hold a feature offset (0: none)."""
         return self.modulation.members
 
+    def member_blocks(self) -> list[nn.Parameter]:
+        """The members' feature offsets, one block a member along the last axis ([]: none)."""
+        return self.modulation.member_blocks()
+
     def offset_square(self, members: torch.Tensor | None = None) -> torch.Tensor:
         """The mean over ``members`` (None: all) of the mean over cells of ``|offset_k|^2``."""
         return self.modulation.offset_square(members)
