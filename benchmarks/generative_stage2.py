@@ -83,6 +83,11 @@ CONFIGS = {
     "two_a_step_dim16_free_offsets_anneal": ["data.members_per_step=2", "budget.rte.steps=4500",
                                              "mode.latent.dim=16", *FREE_OFFSETS,
                                              "model.lr_final_factor=0.01"],
+    # and half the medium's and the light's start rates: twice them undid the offsets' gain
+    "two_a_step_dim16_free_offsets_anneal_slow": [
+        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
+        *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
+        "model.lr.light=1.0e-2"],
     # and Adam stepping each member's code and offsets only on its own steps: plain Adam
     # moves an undrawn member by its last draw's momentum, about sqrt(16 / 2) learning
     # rates for each gradient it gets, where a single scene's parameter moves by about one
