@@ -11,19 +11,16 @@ steps that follow, where a single scene's parameter moves by about one a step.
 ``members`` (K) and ``member_axis`` (the axis of its tensors that holds the K equal blocks)
 gets lazy Adam per block: a block whose gradient is zero everywhere this step is left as it
 is, moments included, and each block counts its own steps for the bias correction (the
-state's ``step``: one count a member, float64). Each
-member's parameters then follow the Adam of a single scene trained on the steps that drew
-it. Weight decay, where a group sets it, is added to the gradient of the stepped blocks
-(Adam's L2 form); ``amsgrad``, ``maximize`` and complex parameters are refused in those
-groups.
+state's ``step``: one count a member, float64). Each member's parameters then follow the
+Adam of a single scene trained on the steps that drew it. Weight decay, where a group sets
+it, is added to the gradient of the stepped blocks (Adam's L2 form); ``amsgrad``,
+``maximize`` and complex parameters are refused in those groups.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import nn
-
-MEMBER_KEYS = ("members", "member_axis")
 
 
 def member_blocks(tensor: torch.Tensor, members: int, axis: int) -> torch.Tensor:
