@@ -10,7 +10,10 @@ that no code is pickled. Generative stage 2 is the split stage with a scene fami
 (the codes, the frozen EA field) is under ``scenes.``.
 
 A checkpoint of any other format, or one that records none (written before formats were
-recorded), is refused with its version and the fix: nrt converts no checkpoint.
+recorded), is refused with its version and the fix: nrt converts no checkpoint. A resume
+whose config groups the optimiser's parameters otherwise than the checkpoint's run did
+(:func:`check_optimizer_layout`) is refused too, rather than left to load one run's moments
+into another's parameters.
 """
 
 from __future__ import annotations
@@ -53,6 +56,30 @@ def check_format(checkpoint: dict, source: str | Path) -> None:
                    "only and converts none. Train the stage again with this nrt (nrt-train "
                    "stage=<stage> scene=<scene>), or read the checkpoint with the nrt version "
                    "that wrote it.")
+
+
+def optimizer_layout(param_groups: list[dict]) -> list[tuple[int, bool]]:
+    """An optimiser's groups as a resume must find them again: per group its number of
+    parameters and whether it steps per member (``members``,
+    :class:`~nrt.stages.member_adam.MemberAdam`). ``param_groups``: an optimiser's
+    ``param_groups`` or those of its ``state_dict()``."""
+    return [(len(group["params"]), "members" in group) for group in param_groups]
+
+
+def check_optimizer_layout(saved: list[list[tuple[int, bool]]],
+                           current: list[list[tuple[int, bool]]], source: str | Path) -> None:
+    """Refuse a resume from ``source`` whose optimisers' layouts (:func:`optimizer_layout`,
+    one list per optimiser) ``saved`` differ from the run's ``current`` ones."""
+    if saved == current:
+        return
+    raise NrtError(f"checkpoint '{source}' groups its optimiser's parameters as {saved} "
+                   f"(per group: parameters, steps per member), but this config groups them "
+                   f"as {current}: the resume changed a setting that decides which "
+                   "parameters the run learns or how Adam steps them (e.g. "
+                   "mode.latent.per_member_adam, mode.latent.member_offsets, "
+                   "mode.latent.light_offsets, the learned properties). Resume with the "
+                   "settings of the run that wrote the checkpoint (its .hydra/config.yaml), "
+                   "or start a new run without resume.")
 
 
 def check_checkpoint_file(ckpt_path: str | Path | None, first_stage: str) -> None:

@@ -50,7 +50,7 @@ from torch.profiler import record_function
 from nrt.distributed import synced
 from nrt.errors import ConfigError
 from nrt.metrics import psnr
-from nrt.stages.checkpoints import check_format, stamp
+from nrt.stages.checkpoints import check_format, check_optimizer_layout, optimizer_layout, stamp
 from nrt.stages.schedules import training_progress
 
 
@@ -122,8 +122,21 @@ class Stage(L.LightningModule):
         stamp(checkpoint)
 
     def on_load_checkpoint(self, checkpoint: dict) -> None:
-        """Refuse a checkpoint of another format (:func:`~nrt.stages.checkpoints.check_format`)."""
+        """Refuse a checkpoint of another format (:func:`~nrt.stages.checkpoints.check_format`)
+        and keep its optimisers' layout for :meth:`on_fit_start`."""
         check_format(checkpoint, "the checkpoint to resume from")
+        self._saved_optimizer_layout = [optimizer_layout(state["param_groups"])
+                                        for state in checkpoint.get("optimizer_states", [])]
+
+    def on_fit_start(self) -> None:
+        """On a resume, refuse optimisers grouped otherwise than the checkpoint's
+        (:func:`~nrt.stages.checkpoints.check_optimizer_layout`): Lightning configures them
+        after :meth:`on_load_checkpoint` and loads their state after this hook."""
+        saved = self.__dict__.pop("_saved_optimizer_layout", None)
+        if saved:
+            check_optimizer_layout(saved, [optimizer_layout(opt.param_groups)
+                                           for opt in self.trainer.optimizers],
+                                   self.trainer.ckpt_path or "the checkpoint to resume from")
 
     # ------------------------------------------------------------------ helpers
     def view_baselines(self, batch: dict) -> dict[str, float]:

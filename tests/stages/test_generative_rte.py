@@ -520,6 +520,20 @@ def test_resume_continues_the_codes(short, family_dir, short_ea, tmp_path):
     assert loaded.member_names() == [f"family_seed{k}" for k in range(K)]
 
 
+def test_a_resume_that_regroups_the_optimiser_is_refused(short, family_dir, short_ea,
+                                                         tmp_path):
+    """Resuming the short run with per-member Adam switched on would load plain Adam's
+    moments into groups that step per member (the codes' group: one parameter, now per
+    member): refused before a step, with the layouts of both."""
+    with pytest.raises(NrtError) as refused:
+        train_stage2(family_dir, short_ea, tmp_path, *SHORT, "budget.rte.steps=26",
+                     "mode.latent.per_member_adam=true", resume=short["ckpt"])
+    message = str(refused.value)
+    assert str(short["ckpt"]) in message
+    assert "(1, False)]]" in message and "(1, True)]]" in message, message
+    assert not (tmp_path / "last.ckpt").exists()  # no step was taken, nothing saved
+
+
 @pytest.mark.slow
 def test_codes_differ_per_member(trained):
     codes = trained["model"].scenes.codes.detach()
