@@ -38,7 +38,8 @@ def test_the_time_to_reach_is_the_first_validation_at_or_below_the_single_runs_m
     append_rows(table, FIELDS, [generative(1000, 400.0, 20.0), generative(0, 0.0, 40.0),
                                 generative(500, 200.0, 21.0), generative(1500, 600.0, 18.0)])
     line = summary(read_table(table)).splitlines()[2]
-    assert line == "| cpu | 0 | 40.0 -> 20.0 | 1000 | 40.0 -> 18.0 | 700 | 0.70 |"
+    assert line == ("| cpu | 0 | default / default | 40.0 -> 20.0 | 1000 | 40.0 -> 18.0 "
+                    "| 700 | 0.70 |")
 
 
 def test_a_generative_run_that_never_reaches_it_reports_its_best(tmp_path) -> None:
@@ -47,8 +48,24 @@ def test_a_generative_run_that_never_reaches_it_reports_its_best(tmp_path) -> No
     append_rows(table, FIELDS, [generative(0, 0.0, 40.0), generative(500, 200.0, 12.5),
                                 generative(1000, 400.0, 14.0)])
     line = summary(read_table(table)).splitlines()[2]
-    assert line == ("| cpu | 0 | 30.0 -> 10.0 | 500 | 40.0 -> 14.0 "
+    assert line == ("| cpu | 0 | default / default | 30.0 -> 10.0 | 500 | 40.0 -> 14.0 "
                     "| not reached (best 12.5 at 500 s) | - |")
+
+
+def test_each_generative_run_is_a_line_against_the_same_single_runs(tmp_path) -> None:
+    """Two generative runs of one seed (the default, a named stage-2 configuration) each
+    get their line, both against the one set of single-scene runs."""
+    table = tmp_path / "rows.csv"
+    append_rows(table, FIELDS, [single(0, 30.0, 10.0, 100, 400)])
+    append_rows(table, FIELDS, [generative(0, 0.0, 40.0), generative(500, 200.0, 12.5)])
+    other = {"stage1": "latent_dim16", "config": "two_a_step"}
+    append_rows(table, FIELDS, [{**generative(0, 0.0, 40.0), **other},
+                                {**generative(500, 100.0, 9.0), **other}])
+    lines = summary(read_table(table)).splitlines()[2:]
+    assert lines == ["| cpu | 0 | default / default | 30.0 -> 10.0 | 500 | 40.0 -> 12.5 "
+                     "| not reached (best 12.5 at 500 s) | - |",
+                     "| cpu | 0 | latent_dim16 / two_a_step | 30.0 -> 10.0 | 500 | 40.0 -> 9.0 "
+                     "| 400 | 0.80 |"]
 
 
 def test_validation_rows_carry_the_training_seconds_from_either_log(tmp_path) -> None:
