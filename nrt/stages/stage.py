@@ -27,8 +27,9 @@ Optional, with these defaults:
   (:mod:`nrt.compile`); nothing.
 
 Every checkpoint a stage saves records nrt's checkpoint format, and a resume from one of
-another format is refused (:mod:`nrt.stages.checkpoints`); a subclass that overrides
-``on_save_checkpoint`` or ``on_load_checkpoint`` calls the base's.
+another format, or whose config groups the optimiser otherwise, is refused
+(:mod:`nrt.stages.checkpoints`); a subclass that overrides ``on_save_checkpoint``,
+``on_load_checkpoint`` or ``on_fit_start`` calls the base's.
 
 Shared helpers: :meth:`Stage.ground_truth`, :meth:`Stage.progress` (of the run's steps or
 time budget, for schedules), :meth:`Stage.grid_resolution` and :meth:`Stage.view_baselines`
