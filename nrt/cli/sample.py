@@ -35,6 +35,7 @@ def settings_of(cfg: DictConfig):
     members = cfg.interpolate.members
     return SampleSettings(
         n=cfg.n, seed=cfg.seed, resolution=cfg.resolution, shrinkage=cfg.gaussian.shrinkage,
+        temperature=cfg.gaussian.temperature, bandwidth=cfg.gaussian.bandwidth,
         views=cfg.render.views, spp=cfg.render.spp, export_mitsuba=cfg.export.mitsuba,
         export_exr=cfg.export.exr, fid_crop=cfg.fid.crop, fid_n_crops=cfg.fid.n_crops,
         fid_real_views=cfg.fid.real_views, fid_truth_reference=cfg.fid.truth_reference,

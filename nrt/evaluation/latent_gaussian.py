@@ -13,10 +13,21 @@ for ``K > d_z`` (the plain full covariance) and ``(d_z - K + 1) / d_z`` for ``K 
 the share of dimensions that ``S`` misses (its rank deficit over d_z), so one code short of
 full rank shrinks by 1/d_z and K = 1 would shrink fully. A number in [0, 1] overrides it.
 A dimension along which no two codes differ keeps variance 0 (its samples equal the mean).
+
+Two ways to draw (``sample``): from the Gaussian itself, its spread about the mean scaled by a
+``temperature`` (1: the fit; below 1 the draws keep closer to the mean, the "truncation" of
+generative models), or, with a ``bandwidth`` h, a smoothed bootstrap of the codes (Silverman
+1986, section 6.4): pick a learned code at random, add Gaussian noise of covariance
+``h^2 Sigma`` and shrink the sum toward the mean by ``1 / sqrt(1 + h^2)``, so that the draws
+keep the codes' mean and, up to the divisor (K against K - 1), their covariance. h -> 0 gives
+back the learned codes themselves, h -> infinity the Gaussian; in between, the draws stay
+near the codes the decoder was trained on without repeating them. Scott's rule for a kernel
+estimate of K points in d_z dimensions is h = K^(-1 / (d_z + 4)) (0.87 for K = d_z = 16).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -31,13 +42,17 @@ def auto_shrinkage(count: int, dim: int) -> float:
 
 @dataclass(frozen=True)
 class LatentGaussian:
-    """``N(mean, cov)`` over codes of ``dim`` values, fitted to ``count`` codes with
-    covariance shrinkage ``shrinkage`` (float64 tensors on the CPU)."""
+    """``N(mean, cov)`` over codes of ``dim`` values, fitted to the ``codes`` (count, dim)
+    with covariance shrinkage ``shrinkage`` (float64 tensors on the CPU)."""
 
     mean: torch.Tensor
     cov: torch.Tensor
     shrinkage: float
-    count: int
+    codes: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.codes.shape[0])
 
     @property
     def dim(self) -> int:
@@ -49,11 +64,21 @@ class LatentGaussian:
         evals, evecs = torch.linalg.eigh(self.cov)
         return evecs * evals.clamp_min(0).sqrt()
 
-    def sample(self, n: int, seed: int = 0) -> torch.Tensor:
-        """``n`` codes (n, dim), float32, drawn with a generator seeded by ``seed``."""
+    def sample(self, n: int, seed: int = 0, temperature: float = 1.0,
+               bandwidth: float | None = None) -> torch.Tensor:
+        """``n`` codes (n, dim), float32, drawn with a generator seeded by ``seed``: from the
+        Gaussian with its spread scaled by ``temperature``, or, with ``bandwidth`` h, the
+        smoothed bootstrap of the fitted codes (module docstring)."""
         gen = torch.Generator().manual_seed(int(seed))
+        if bandwidth is None:
+            eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
+            return (self.mean + float(temperature) * eps @ self.factor().T).float()
+        pick = torch.randint(0, self.count, (int(n),), generator=gen)
         eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
-        return (self.mean + eps @ self.factor().T).float()
+        h = float(bandwidth)
+        centred = self.codes[pick] - self.mean
+        return (self.mean + (centred + h * eps @ self.factor().T) / math.sqrt(1 + h * h)
+                ).float()
 
 
 def fit_latent_gaussian(codes: torch.Tensor, shrinkage: float | str = "auto") -> LatentGaussian:
@@ -79,4 +104,10 @@ def fit_latent_gaussian(codes: torch.Tensor, shrinkage: float | str = "auto") ->
     centred = codes - mean
     sample_cov = centred.T @ centred / (count - 1)
     cov = (1 - lam) * sample_cov + lam * torch.diag(torch.diagonal(sample_cov))
-    return LatentGaussian(mean=mean, cov=cov, shrinkage=lam, count=count)
+    return LatentGaussian(mean=mean, cov=cov, shrinkage=lam, codes=codes)
+
+
+def scott_bandwidth(count: int, dim: int) -> float:
+    """Scott's rule for a Gaussian kernel estimate of ``count`` points in ``dim``
+    dimensions, in units of their covariance: ``count ** (-1 / (dim + 4))``."""
+    return float(count) ** (-1.0 / (dim + 4))

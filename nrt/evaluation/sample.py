@@ -5,7 +5,8 @@ latent code per family member and a decoder from any code to a medium
 (:class:`LatentMediumModel`). ``nrt-sample``:
 
 1. fits ``N(mu, Sigma)`` to the learned codes (:mod:`nrt.evaluation.latent_gaussian`) and
-   draws ``n`` codes from it (``seed``);
+   draws ``n`` codes from it (``seed``; at a ``temperature``), or with a ``bandwidth`` from
+   a smoothed bootstrap of the codes;
 2. decodes each to property grids (``property_grids_for``), checked finite and valid
    (sigma >= 0, |g| < 1), and exports them as ``medium_grids.npz`` and Mitsuba volumes;
 3. renders each with Mitsuba ``volpath`` (the dataset renderer's scene, via
@@ -53,7 +54,11 @@ from nrt.data.grids import MEDIUM_GRIDS_FILE, PROPERTY_KEYS, save_property_grids
 from nrt.errors import NrtError
 from nrt.evaluation.evaluate import property_metrics
 from nrt.evaluation.images import display, save_png
-from nrt.evaluation.latent_gaussian import LatentGaussian, fit_latent_gaussian
+from nrt.evaluation.latent_gaussian import (
+    LatentGaussian,
+    fit_latent_gaussian,
+    scott_bandwidth,
+)
 from nrt.evaluation.rerender import render_frames
 from nrt.metrics import FID
 
@@ -129,6 +134,8 @@ class SampleSettings:
     seed: int = 0
     resolution: int | None = None
     shrinkage: float | str = "auto"
+    temperature: float = 1.0
+    bandwidth: float | str | None = None
     views: int | None = 4
     spp: int | None = None
     export_mitsuba: bool = True
@@ -152,6 +159,13 @@ class SampleSettings:
             return AUTO_FOLD_STEPS if member_offsets else 0
         return int(self.fold_steps)
 
+    def bandwidth_for(self, count: int, dim: int) -> float | None:
+        """The smoothed bootstrap's bandwidth for K = ``count`` codes of ``dim`` values
+        (``"scott"``: Scott's rule), or None to draw from the Gaussian."""
+        if self.bandwidth == "scott":
+            return scott_bandwidth(count, dim)
+        return None if self.bandwidth is None else float(self.bandwidth)
+
     def check(self, members: int | None = None) -> None:
         """Refuse values no sampling can use (before anything is loaded or rendered)."""
         def whole(value, least: int) -> bool:
@@ -171,9 +185,20 @@ class SampleSettings:
             if v is not None and not whole(v, least) and not (k == "fold.steps" and v == "auto")
             or v is None and k in ("n", "fid.n_crops", "interpolate.steps",
                                    "picture.max_samples", "fold.steps")]
-        lr = self.fold_lr
-        if isinstance(lr, bool) or not isinstance(lr, int | float) or not 0 < lr < float("inf"):
-            bad.append(("fold.lr", lr, "the fold's Adam learning rate, a number > 0"))
+        def positive(value, least_open: bool = True) -> bool:
+            return not isinstance(value, bool) and isinstance(value, int | float) and (
+                0 < value < float("inf") if least_open else 0 <= value < float("inf"))
+        if not positive(self.fold_lr):
+            bad.append(("fold.lr", self.fold_lr, "the fold's Adam learning rate, a number > 0"))
+        if not positive(self.temperature):
+            bad.append(("gaussian.temperature", self.temperature,
+                        "the draws' spread about the mean in units of the fit's, a number > 0 "
+                        "(1: the fitted Gaussian)"))
+        if self.bandwidth is not None and self.bandwidth != "scott" \
+                and not positive(self.bandwidth, least_open=False):
+            bad.append(("gaussian.bandwidth", self.bandwidth,
+                        "null (draw from the Gaussian), scott or a number >= 0 (a smoothed "
+                        "bootstrap of the learned codes)"))
         if bad:
             key, value, meaning = bad[0]
             raise NrtError(f"{key}={value!r}: must be {meaning}. "
@@ -381,7 +406,9 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
               for col, env in data.skies.items()}
 
     result.gaussian = gauss = fit_latent_gaussian(codes, settings.shrinkage)
-    result.samples = samples = gauss.sample(settings.n, settings.seed)
+    bandwidth = settings.bandwidth_for(gauss.count, gauss.dim)
+    result.samples = samples = gauss.sample(settings.n, settings.seed, settings.temperature,
+                                            bandwidth)
     np.savez(out_dir / "latent_gaussian.npz", codes=codes.numpy(),
              mean=gauss.mean.numpy(), cov=gauss.cov.numpy(), shrinkage=gauss.shrinkage,
              samples=samples.numpy(), names=np.array(model.member_names()))
@@ -452,7 +479,10 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
         float(pair[0]), float(pair[1]))
     result.metrics.update({"n_samples": float(settings.n), "n_members": float(len(codes)),
                            "latent_dim": float(codes.shape[1]),
-                           "gaussian_shrinkage": gauss.shrinkage, "resolution": float(res),
+                           "gaussian_shrinkage": gauss.shrinkage,
+                           "gaussian_temperature": float(settings.temperature),
+                           **({} if bandwidth is None else {"bootstrap_bandwidth": bandwidth}),
+                           "resolution": float(res),
                            "spp": float(spp), **timings,
                            "wall_s": time.perf_counter() - start})
     return result

@@ -1,0 +1,239 @@
+"""How a generative run's codes are drawn, side by side: the FID of each sampler's media
+against the true media's, over several seeds, and how far its samples lie from the members.
+
+``nrt-sample`` draws new codes from the Gaussian fitted to the learned ones
+(:mod:`nrt.evaluation.latent_gaussian`); this benchmark holds one finished generative stage-2
+run (``--from-run``, folded first where it holds member offsets, as ``nrt-sample`` folds it)
+and compares samplers of its codes (:data:`SAMPLERS`): the Gaussian, the Gaussian at a lower
+temperature, and smoothed bootstraps of the codes at several bandwidths, from the learned
+codes themselves (h = 0) toward the Gaussian (h -> infinity). For each seed and sampler it
+draws ``--n`` codes, decodes and renders them exactly as ``nrt-sample`` does (its functions:
+the held-out cameras under the training and the held-back sky, the family's spp, render seed
+1 + i for sample i) and scores FID under both skies against the members' photos, with the
+real crops, the true media's renders (the reference at the same counts) and the members'
+reconstructions' renders drawn once per seed and shared by every sampler. Seed 0 of the
+Gaussian is what ``nrt-sample seed=0`` reports.
+
+Novelty, beside FID (sigma_t MSE x100, means over the samples or members): each sample's
+distance to the nearest member's reconstruction (``nearest_recon``: 0 for a sample that
+repeats a learned code), against the reconstructions' distance to their nearest other one
+(``recons_apart``: how far apart the decoder puts the members); each sample's distance to
+the nearest member's true medium (``nearest_truth``), against the reconstructions' own error
+(``recon_own``) and the true media's distance to their nearest other one (``members_apart``).
+An average of the members lies close to all of them in this measure, so a small
+``nearest_truth`` alone says little. A row per (run, sampler, seed) in ``--table``; rows
+already there are skipped, so a killed benchmark continues; ``--summary`` prints the mean
+and spread over seeds.
+
+    python -m benchmarks.generative_sampling --from-run DIR [--label NAME]
+        [--samplers gaussian,gaussian_t0.7,bootstrap_h0.5] [--seeds 0,1,2] [--n 16]
+        [--table docs/data/generative_sampling.csv] [--summary]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.common import append_rows, read_table, unfinished_run_error
+
+ROOT = Path(__file__).resolve().parent.parent
+TABLE = ROOT / "docs" / "data" / "generative_sampling.csv"
+SAMPLERS = {
+    "gaussian": {},
+    "gaussian_t0.85": {"temperature": 0.85},
+    "gaussian_t0.7": {"temperature": 0.7},
+    "gaussian_t0.5": {"temperature": 0.5},
+    "bootstrap_h0.25": {"bandwidth": 0.25},
+    "bootstrap_h0.5": {"bandwidth": 0.5},
+    "bootstrap_scott": {"bandwidth": "scott"},
+    "bootstrap_h1": {"bandwidth": 1.0},
+}
+"""Sampler name -> its ``nrt-sample`` settings (:class:`SampleSettings`' ``temperature``,
+``bandwidth``; ``"scott"``: Scott's bandwidth for the run's K and d_z)."""
+COLUMNS = ("train", "novel")
+FIELDS = ("label", "run", "sampler", "temperature", "bandwidth", "seed", "n",
+          *(f"fid_{col}{ref}" for col in COLUMNS for ref in ("", "_truth", "_recon")),
+          "nearest_recon", "recons_apart", "nearest_truth", "recon_own", "members_apart",
+          "sample_s")
+
+
+def sigma_t_mse(a: dict, b: dict, effects: dict) -> float:
+    """sigma_t MSE x100 between two media on the same grid."""
+    from nrt.evaluation.evaluate import property_metrics
+
+    return float(property_metrics(a, b, effects)["mse_sigma_t_x100"])
+
+
+def nearest(media: list[dict], truths: list[dict], effects: dict,
+            skip_self: bool = False) -> list[float]:
+    """Each medium's sigma_t MSE x100 to the nearest of ``truths`` (not its own index with
+    ``skip_self``)."""
+    return [min(sigma_t_mse(m, t, effects) for j, t in enumerate(truths)
+                if not (skip_self and i == j)) for i, m in enumerate(media)]
+
+
+class Scorer:
+    """FID of rendered media under both skies against one seed's real crops, with the true
+    media's and the reconstructions' renders scored once as references."""
+
+    def __init__(self, data, settings, reals: dict, references: dict):
+        from nrt.evaluation.sample import make_fid, white_of
+
+        self.fids = {}
+        for col, real in reals.items():
+            fid = make_fid(settings, data.cameras, white_of(real))
+            fid.update(real, real=True)
+            self.fids[col] = fid
+        self.references = {name: {col: self.score(col, np.concatenate(stacks[col]))
+                                  for col in COLUMNS}
+                           for name, stacks in references.items()}
+
+    def score(self, col: str, fake: np.ndarray) -> float:
+        fid = self.fids[col]
+        fid.reset(real=False)
+        fid.update(torch.as_tensor(fake), real=False)
+        return float(fid.compute())
+
+
+def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int,
+            table: Path) -> None:
+    """The rows of ``run`` for every (sampler, seed) not yet in ``table``."""
+    from nrt.data.family import load_family
+    from nrt.evaluation.latent_gaussian import fit_latent_gaussian
+    from nrt.evaluation.runs import load_generative_model, open_generative_run
+    from nrt.evaluation.sample import (
+        AUTO_FOLD_STEPS,
+        SampleSettings,
+        decode,
+        load_family_data,
+        real_images,
+        reconstruction,
+        reference_renders,
+        render_medium,
+        sky_frames,
+    )
+    from nrt.mitsuba.variant import select_variant
+
+    done = {(r["run"], r["sampler"], r["seed"]) for r in read_table(table)}
+    todo = [(s, name) for s in seeds for name in samplers
+            if (str(run), name, str(s)) not in done]
+    if not todo:
+        return
+    info = open_generative_run(run)
+    data = load_family_data(load_family(info.family_dir), info.effects)
+    model = load_generative_model(info)
+    if model.holds_member_offsets:
+        model.fold_offsets(AUTO_FOLD_STEPS, SampleSettings().fold_lr)
+    select_variant("auto")
+    base = SampleSettings(n=n, fid_n_crops=2, fid_real_views=8)  # conf/sample.yaml's
+    res = int(data.truths[0]["g"].shape[0])
+    spp = int((data.cameras.spec or {}).get("spp", 128))
+    frames = {col: sky_frames(data.cameras, env, base.views) for col, env in data.skies.items()}
+    codes = model.codes.detach().float().cpu()
+    gauss = fit_latent_gaussian(codes, base.shrinkage)
+    recon_rows, recon_media = reconstruction(model, data, res)
+    recon_own = statistics.fmean(r["mse_sigma_t_x100"] for r in recon_rows)
+    apart = statistics.fmean(nearest(data.truths, data.truths, data.effects, skip_self=True))
+    recons_apart = statistics.fmean(nearest(recon_media, recon_media, data.effects,
+                                            skip_self=True))
+    reals = {col: real_images(data, env, base.fid_real_views) for col, env in data.skies.items()}
+    references = {name: reference_renders(media, data, frames, spp, 1 + n, n)
+                  for name, media in (("truth", data.truths), ("recon", recon_media))}
+    for seed in sorted({s for s, _ in todo}):
+        scorer = Scorer(data, SampleSettings(n=n, seed=seed, fid_n_crops=base.fid_n_crops,
+                                             fid_real_views=base.fid_real_views),
+                        reals, references)
+        for name in [name for s, name in todo if s == seed]:
+            start = time.perf_counter()
+            settings = SampleSettings(n=n, seed=seed, **SAMPLERS[name])
+            settings.check()
+            bandwidth = settings.bandwidth_for(gauss.count, gauss.dim)
+            drawn = gauss.sample(n, seed, settings.temperature, bandwidth)
+            media = [decode(model, code, res, f"sample {i}") for i, code in enumerate(drawn)]
+            renders = {col: [] for col in frames}
+            for i, grids in enumerate(media):
+                for col, stack in render_medium(grids, data, frames, spp, seed=1 + i).items():
+                    renders[col].append(stack)
+            row = {"label": label, "run": str(run), "sampler": name,
+                   "temperature": settings.temperature,
+                   "bandwidth": "" if bandwidth is None else f"{bandwidth:.4f}",
+                   "seed": seed, "n": n}
+            for col in COLUMNS:
+                row[f"fid_{col}"] = f"{scorer.score(col, np.concatenate(renders[col])):.3f}"
+                for ref in ("truth", "recon"):
+                    row[f"fid_{col}_{ref}"] = f"{scorer.references[ref][col]:.3f}"
+            novelty = {"nearest_recon": statistics.fmean(nearest(media, recon_media,
+                                                                 data.effects)),
+                       "recons_apart": recons_apart,
+                       "nearest_truth": statistics.fmean(nearest(media, data.truths,
+                                                                 data.effects)),
+                       "recon_own": recon_own, "members_apart": apart}
+            row.update({k: f"{v:.4f}" for k, v in novelty.items()})
+            row["sample_s"] = f"{time.perf_counter() - start:.1f}"
+            append_rows(table, FIELDS, [row])
+            print(summary(read_table(table)), flush=True)
+
+
+def spread(values: list[float]) -> str:
+    """``mean ± sd`` (sd over the values; the mean alone for one value)."""
+    if len(values) < 2:
+        return f"{values[0]:.1f}"
+    return f"{statistics.fmean(values):.1f} ± {statistics.stdev(values):.1f}"
+
+
+def summary(rows: list[dict]) -> str:
+    """Per (label, sampler): FID of the samples, the true media and the reconstructions
+    under both skies, mean ± sd over its seeds, and the novelty distances."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["label"], r["sampler"]), []).append(r)
+    lines = ["| run | sampler | seeds | FID samples: train | novel | truth: train | novel "
+             "| recon: train | novel | samples' nearest recon | recons apart "
+             "| samples' nearest truth | recon own | members apart |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for (label, name), group in groups.items():
+        def col(key: str, group=group) -> str:
+            return spread([float(r[key]) for r in group])
+        lines.append(f"| {label} | {name} | {len(group)} | " + " | ".join(
+            col(k) for k in ("fid_train", "fid_novel", "fid_train_truth", "fid_novel_truth",
+                             "fid_train_recon", "fid_novel_recon", "nearest_recon",
+                             "recons_apart", "nearest_truth", "recon_own",
+                             "members_apart")) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--from-run", type=Path, default=None,
+                        help="a finished generative stage-2 run folder")
+    parser.add_argument("--label", default=None, help="the run's name in the table")
+    parser.add_argument("--samplers", default="gaussian,gaussian_t0.7,bootstrap_h0.5")
+    parser.add_argument("--seeds", default="0,1,2")
+    parser.add_argument("--n", type=int, default=16, help="media to sample")
+    parser.add_argument("--table", type=Path, default=TABLE)
+    parser.add_argument("--summary", action="store_true", help="print the table and stop")
+    args = parser.parse_args()
+    if args.summary:
+        print(summary(read_table(args.table)))
+        return
+    if args.from_run is None:
+        parser.error("--from-run: name a finished generative stage-2 run folder.")
+    problem = unfinished_run_error(args.from_run)
+    if problem:
+        parser.error(f"--from-run: {problem}")
+    samplers = args.samplers.split(",")
+    unknown = [s for s in samplers if s not in SAMPLERS]
+    if unknown:
+        parser.error(f"--samplers: unknown {unknown}; choose from {sorted(SAMPLERS)}.")
+    measure(args.from_run.resolve(), args.label or args.from_run.name, samplers,
+            [int(s) for s in args.seeds.split(",")], args.n, args.table)
+
+
+if __name__ == "__main__":
+    main()
