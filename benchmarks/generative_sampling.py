@@ -12,7 +12,10 @@ the held-out cameras under the training and the held-back sky, the family's spp,
 1 + i for sample i) and scores FID under both skies against the members' photos, with the
 real crops, the true media's renders (the reference at the same counts) and the members'
 reconstructions' renders drawn once per seed and shared by every sampler. Seed 0 of the
-Gaussian is what ``nrt-sample seed=0`` reports.
+Gaussian is what ``nrt-sample seed=0`` reports. A third reference, ``floor``: the true media
+resampled to the run's medium cells (its last ``budget.rte.medium_resolutions``) and back,
+rendered like the others: what the cells alone cost in FID, the least a reconstruction on
+them can score.
 
 Novelty, beside FID (sigma_t MSE x100, means over the samples or members): each sample's
 distance to the nearest member's reconstruction (``nearest_recon``: 0 for a sample that
@@ -57,8 +60,10 @@ SAMPLERS = {
 """Sampler name -> its ``nrt-sample`` settings (:class:`SampleSettings`' ``temperature``,
 ``bandwidth``; ``"scott"``: Scott's bandwidth for the run's K and d_z)."""
 COLUMNS = ("train", "novel")
+REFERENCES = ("_truth", "_floor", "_recon")
+"""The true media, the true media on the run's cells, the members' reconstructions."""
 FIELDS = ("label", "run", "sampler", "temperature", "bandwidth", "seed", "n",
-          *(f"fid_{col}{ref}" for col in COLUMNS for ref in ("", "_truth", "_recon")),
+          *(f"fid_{col}{ref}" for col in COLUMNS for ref in ("", *REFERENCES)),
           "nearest_recon", "recons_apart", "nearest_truth", "recon_own", "members_apart",
           "sample_s")
 
@@ -105,8 +110,13 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
             table: Path) -> None:
     """The rows of ``run`` for every (sampler, seed) not yet in ``table``."""
     from nrt.data.family import load_family
+    from nrt.data.grids import resample_grids
     from nrt.evaluation.latent_gaussian import fit_latent_gaussian
-    from nrt.evaluation.runs import load_generative_model, open_generative_run
+    from nrt.evaluation.runs import (
+        load_generative_model,
+        open_generative_run,
+        read_run_folder,
+    )
     from nrt.evaluation.sample import (
         AUTO_FOLD_STEPS,
         SampleSettings,
@@ -143,8 +153,11 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
     recons_apart = statistics.fmean(nearest(recon_media, recon_media, data.effects,
                                             skip_self=True))
     reals = {col: real_images(data, env, base.fid_real_views) for col, env in data.skies.items()}
+    cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])
+    floor = [resample_grids(resample_grids(t, cells), res) for t in data.truths]
     references = {name: reference_renders(media, data, frames, spp, 1 + n, n)
-                  for name, media in (("truth", data.truths), ("recon", recon_media))}
+                  for name, media in (("truth", data.truths), ("floor", floor),
+                                      ("recon", recon_media))}
     for seed in sorted({s for s, _ in todo}):
         scorer = Scorer(data, SampleSettings(n=n, seed=seed, fid_n_crops=base.fid_n_crops,
                                              fid_real_views=base.fid_real_views),
@@ -166,8 +179,8 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
                    "seed": seed, "n": n}
             for col in COLUMNS:
                 row[f"fid_{col}"] = f"{scorer.score(col, np.concatenate(renders[col])):.3f}"
-                for ref in ("truth", "recon"):
-                    row[f"fid_{col}_{ref}"] = f"{scorer.references[ref][col]:.3f}"
+                for ref in REFERENCES:
+                    row[f"fid_{col}{ref}"] = f"{scorer.references[ref[1:]][col]:.3f}"
             novelty = {"nearest_recon": statistics.fmean(nearest(media, recon_media,
                                                                  data.effects)),
                        "recons_apart": recons_apart,
@@ -188,20 +201,22 @@ def spread(values: list[float]) -> str:
 
 
 def summary(rows: list[dict]) -> str:
-    """Per (label, sampler): FID of the samples, the true media and the reconstructions
-    under both skies, mean ± sd over its seeds, and the novelty distances."""
+    """Per (label, sampler): FID of the samples and of the references (true media, true
+    media on the run's cells, reconstructions) under both skies, mean ± sd over its seeds,
+    and the novelty distances."""
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["label"], r["sampler"]), []).append(r)
     lines = ["| run | sampler | seeds | FID samples: train | novel | truth: train | novel "
-             "| recon: train | novel | samples' nearest recon | recons apart "
-             "| samples' nearest truth | recon own | members apart |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "| floor: train | novel | recon: train | novel | samples' nearest recon "
+             "| recons apart | samples' nearest truth | recon own | members apart |",
+             "|---|---|---:|" + "---:|" * 13]
     for (label, name), group in groups.items():
         def col(key: str, group=group) -> str:
             return spread([float(r[key]) for r in group])
         lines.append(f"| {label} | {name} | {len(group)} | " + " | ".join(
             col(k) for k in ("fid_train", "fid_novel", "fid_train_truth", "fid_novel_truth",
+                             "fid_train_floor", "fid_novel_floor",
                              "fid_train_recon", "fid_novel_recon", "nearest_recon",
                              "recons_apart", "nearest_truth", "recon_own",
                              "members_apart")) + " |")
