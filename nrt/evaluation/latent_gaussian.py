@@ -17,12 +17,14 @@ A dimension along which no two codes differ keeps variance 0 (its samples equal 
 Two ways to draw (``sample``): from the Gaussian itself, its spread about the mean scaled by a
 ``temperature`` (1: the fit; below 1 the draws keep closer to the mean, the "truncation" of
 generative models), or, with a ``bandwidth`` h, a smoothed bootstrap of the codes (Silverman
-1986, section 6.4): pick a learned code at random, add Gaussian noise of covariance
-``h^2 Sigma`` and shrink the sum toward the mean by ``1 / sqrt(1 + h^2)``, so that the draws
-keep the codes' mean and, up to the divisor (K against K - 1), their covariance. h -> 0 gives
-back the learned codes themselves, h -> infinity the Gaussian; in between, the draws stay
-near the codes the decoder was trained on without repeating them. Scott's rule for a kernel
-estimate of K points in d_z dimensions is h = K^(-1 / (d_z + 4)) (0.87 for K = d_z = 16).
+1986, section 6.4): take a learned code, add Gaussian noise of covariance ``h^2 Sigma`` and
+shrink the sum toward the mean by ``1 / sqrt(1 + h^2)``, so that the draws keep the codes'
+mean and, up to the divisor (K against K - 1), their covariance. The codes are taken in turn,
+each round of K draws in a random order of all K, so that K draws start once from every
+code, as FID's reference takes the true media in turn. h -> 0 gives back the learned codes
+themselves, h -> infinity the Gaussian; in between, the draws stay near the codes the
+decoder was trained on without repeating them. Scott's rule for a kernel estimate of K
+points in d_z dimensions is h = K^(-1 / (d_z + 4)) (0.87 for K = d_z = 16).
 """
 
 from __future__ import annotations
@@ -73,7 +75,9 @@ class LatentGaussian:
         if bandwidth is None:
             eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
             return (self.mean + float(temperature) * eps @ self.factor().T).float()
-        pick = torch.randint(0, self.count, (int(n),), generator=gen)
+        rounds = -(-int(n) // self.count)
+        pick = torch.cat([torch.randperm(self.count, generator=gen)
+                          for _ in range(rounds)])[:int(n)]
         eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
         h = float(bandwidth)
         centred = self.codes[pick] - self.mean
