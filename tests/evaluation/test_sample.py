@@ -392,7 +392,8 @@ def fake_run(folder: Path, info: dict, overrides: tuple[str, ...] = ()) -> Path:
     return folder
 
 
-@pytest.mark.parametrize("case", ["missing", "not_a_run", "single", "generative_ea", "n0"])
+@pytest.mark.parametrize("case", ["missing", "not_a_run", "single", "generative_ea", "n0",
+                                  "cold", "wide"])
 def test_errors_exit_2_with_one_paragraph(tmp_path, case):
     family = {"mode": "generative", "family_dir": str(tmp_path / "family"), "scene": "family",
               "environments": ["sky0"], "members": []}
@@ -406,9 +407,11 @@ def test_errors_exit_2_with_one_paragraph(tmp_path, case):
                                    ("scene=family", "mode=generative")),
                           "stage=rte mode=generative scene=family init.ea_ckpt="),
     }
-    run, needle = runs.get(case, (tmp_path, "n=0"))
-    code, err = run_sample(tmp_path, f"run={run}",
-                           *(["n=0"] if case == "n0" else []))
+    bad = {"n0": ("n=0", "n=0"), "cold": ("gaussian.temperature=0", "gaussian.temperature=0"),
+           "wide": ("gaussian.bandwidth=-1", "gaussian.bandwidth=-1")}
+    override, needle = bad.get(case, (None, None))
+    run, needle = runs.get(case, (tmp_path, needle))
+    code, err = run_sample(tmp_path, f"run={run}", *([override] if override else []))
     assert code == 2 and "nrt: error:" in err and needle in err, err[-2000:]
     assert "Traceback" not in err
     assert not list(tmp_path.glob("**/sample/*")), "a failed start left a folder behind"
