@@ -29,7 +29,8 @@ already there are skipped, so a killed benchmark continues; ``--summary`` prints
 and spread over seeds.
 
     python -m benchmarks.generative_sampling --from-run DIR [--label NAME]
-        [--samplers gaussian,gaussian_t0.7,bootstrap_h0.5] [--seeds 0,1,2] [--n 16]
+        [--samplers gaussian,gaussian_t0.7,bootstrap_h0.25,bootstrap_h0.5,bootstrap_scott]
+        [--seeds 0,1,2] [--n 16]
         [--table docs/data/generative_sampling.csv] [--summary]
 """
 
@@ -228,7 +229,8 @@ def main() -> None:
     parser.add_argument("--from-run", type=Path, default=None,
                         help="a finished generative stage-2 run folder")
     parser.add_argument("--label", default=None, help="the run's name in the table")
-    parser.add_argument("--samplers", default="gaussian,gaussian_t0.7,bootstrap_h0.5")
+    parser.add_argument("--samplers", default="gaussian,gaussian_t0.7,bootstrap_h0.25,"
+                        "bootstrap_h0.5,bootstrap_scott")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--n", type=int, default=16, help="media to sample")
     parser.add_argument("--table", type=Path, default=TABLE)
