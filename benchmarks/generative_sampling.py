@@ -85,8 +85,8 @@ def nearest(media: list[dict], truths: list[dict], effects: dict,
 
 
 class Scorer:
-    """FID of rendered media under both skies against one seed's real crops, with the true
-    media's and the reconstructions' renders scored once as references."""
+    """FID of rendered media under both skies against one seed's real crops, with the
+    references' renders (:data:`REFERENCES`) scored once."""
 
     def __init__(self, data, settings, reals: dict, references: dict):
         from nrt.evaluation.sample import make_fid, white_of
@@ -142,7 +142,8 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
     if model.holds_member_offsets:
         model.fold_offsets(AUTO_FOLD_STEPS, SampleSettings().fold_lr)
     select_variant("auto")
-    base = SampleSettings(n=n, fid_n_crops=2, fid_real_views=8)  # conf/sample.yaml's
+    # conf/sample.yaml's FID counts (SampleSettings' own defaults differ: 4 crops, all views)
+    base = SampleSettings(n=n, fid_n_crops=2, fid_real_views=8)
     res = int(data.truths[0]["g"].shape[0])
     spp = int((data.cameras.spec or {}).get("spp", 128))
     frames = {col: sky_frames(data.cameras, env, base.views) for col, env in data.skies.items()}

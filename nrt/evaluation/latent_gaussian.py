@@ -70,7 +70,8 @@ class LatentGaussian:
                bandwidth: float | None = None) -> torch.Tensor:
         """``n`` codes (n, dim), float32, drawn with a generator seeded by ``seed``: from the
         Gaussian with its spread scaled by ``temperature``, or, with ``bandwidth`` h, the
-        smoothed bootstrap of the fitted codes (module docstring)."""
+        smoothed bootstrap of the fitted codes (module docstring; ``temperature`` is then
+        not read)."""
         gen = torch.Generator().manual_seed(int(seed))
         if bandwidth is None:
             eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
