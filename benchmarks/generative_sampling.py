@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -107,35 +108,56 @@ class Scorer:
         return float(fid.compute())
 
 
-def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int,
-            table: Path) -> None:
-    """The rows of ``run`` for every (sampler, seed) not yet in ``table``."""
+@dataclass
+class LoadedRun:
+    """A finished generative run made ready to score (folded as ``nrt-sample`` folds it):
+    its family, model, FID settings (conf/sample.yaml's counts), the frames rendered per
+    sky, the real photos, the members' reconstructions (rows and grids) and the true media
+    on the run's cells (``floor``)."""
+
+    data: object
+    model: object
+    base: object
+    resolution: int
+    spp: int
+    frames: dict
+    reals: dict
+    recon_rows: list
+    recon_media: list
+    floor: list
+
+    def renders(self, media: list[dict]) -> dict[str, list[np.ndarray]]:
+        """``media`` rendered as the references are (:func:`reference_renders`)."""
+        from nrt.evaluation.sample import reference_renders
+
+        n = self.base.n
+        return reference_renders(media, self.data, self.frames, self.spp, 1 + n, n)
+
+    def scorer(self, seed: int, references: dict) -> Scorer:
+        """The FID of seed ``seed`` against the real photos, ``references`` scored once."""
+        from nrt.evaluation.sample import SampleSettings
+
+        return Scorer(self.data, SampleSettings(n=self.base.n, seed=seed,
+                                                fid_n_crops=self.base.fid_n_crops,
+                                                fid_real_views=self.base.fid_real_views),
+                      self.reals, references)
+
+
+def load_run(run: Path, n: int) -> LoadedRun:
+    """:class:`LoadedRun` of the run folder ``run`` for ``n`` media per FID."""
     from nrt.data.family import load_family
     from nrt.data.grids import resample_grids
-    from nrt.evaluation.latent_gaussian import fit_latent_gaussian
-    from nrt.evaluation.runs import (
-        load_generative_model,
-        open_generative_run,
-        read_run_folder,
-    )
+    from nrt.evaluation.runs import load_generative_model, open_generative_run, read_run_folder
     from nrt.evaluation.sample import (
         AUTO_FOLD_STEPS,
         SampleSettings,
-        decode,
         load_family_data,
         real_images,
         reconstruction,
-        reference_renders,
-        render_medium,
         sky_frames,
     )
     from nrt.mitsuba.variant import select_variant
 
-    done = {(r["run"], r["sampler"], r["seed"]) for r in read_table(table)}
-    todo = [(s, name) for s in seeds for name in samplers
-            if (str(run), name, str(s)) not in done]
-    if not todo:
-        return
     info = open_generative_run(run)
     data = load_family_data(load_family(info.family_dir), info.effects)
     model = load_generative_model(info)
@@ -145,25 +167,43 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
     # conf/sample.yaml's FID counts (SampleSettings' own defaults differ: 4 crops, all views)
     base = SampleSettings(n=n, fid_n_crops=2, fid_real_views=8)
     res = int(data.truths[0]["g"].shape[0])
-    spp = int((data.cameras.spec or {}).get("spp", 128))
-    frames = {col: sky_frames(data.cameras, env, base.views) for col, env in data.skies.items()}
-    codes = model.codes.detach().float().cpu()
-    gauss = fit_latent_gaussian(codes, base.shrinkage)
     recon_rows, recon_media = reconstruction(model, data, res)
-    recon_own = statistics.fmean(r["mse_sigma_t_x100"] for r in recon_rows)
+    cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])
+    return LoadedRun(
+        data=data, model=model, base=base, resolution=res,
+        spp=int((data.cameras.spec or {}).get("spp", 128)),
+        frames={col: sky_frames(data.cameras, env, base.views)
+                for col, env in data.skies.items()},
+        reals={col: real_images(data, env, base.fid_real_views)
+               for col, env in data.skies.items()},
+        recon_rows=recon_rows, recon_media=recon_media,
+        floor=[resample_grids(resample_grids(t, cells), res) for t in data.truths])
+
+
+def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int,
+            table: Path) -> None:
+    """The rows of ``run`` for every (sampler, seed) not yet in ``table``."""
+    from nrt.evaluation.latent_gaussian import fit_latent_gaussian
+    from nrt.evaluation.sample import SampleSettings, decode, render_medium
+
+    done = {(r["run"], r["sampler"], r["seed"]) for r in read_table(table)}
+    todo = [(s, name) for s in seeds for name in samplers
+            if (str(run), name, str(s)) not in done]
+    if not todo:
+        return
+    loaded = load_run(run, n)
+    data, model, res = loaded.data, loaded.model, loaded.resolution
+    gauss = fit_latent_gaussian(model.codes.detach().float().cpu(), loaded.base.shrinkage)
+    recon_media = loaded.recon_media
+    recon_own = statistics.fmean(r["mse_sigma_t_x100"] for r in loaded.recon_rows)
     apart = statistics.fmean(nearest(data.truths, data.truths, data.effects, skip_self=True))
     recons_apart = statistics.fmean(nearest(recon_media, recon_media, data.effects,
                                             skip_self=True))
-    reals = {col: real_images(data, env, base.fid_real_views) for col, env in data.skies.items()}
-    cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])
-    floor = [resample_grids(resample_grids(t, cells), res) for t in data.truths]
-    references = {name: reference_renders(media, data, frames, spp, 1 + n, n)
-                  for name, media in (("truth", data.truths), ("floor", floor),
+    references = {name: loaded.renders(media)
+                  for name, media in (("truth", data.truths), ("floor", loaded.floor),
                                       ("recon", recon_media))}
     for seed in sorted({s for s, _ in todo}):
-        scorer = Scorer(data, SampleSettings(n=n, seed=seed, fid_n_crops=base.fid_n_crops,
-                                             fid_real_views=base.fid_real_views),
-                        reals, references)
+        scorer = loaded.scorer(seed, references)
         for name in [name for s, name in todo if s == seed]:
             start = time.perf_counter()
             settings = SampleSettings(n=n, seed=seed, **SAMPLERS[name])
@@ -171,9 +211,10 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
             bandwidth = settings.bandwidth_for(gauss.count, gauss.dim)
             drawn = gauss.sample(n, seed, settings.temperature, bandwidth)
             media = [decode(model, code, res, f"sample {i}") for i, code in enumerate(drawn)]
-            renders = {col: [] for col in frames}
+            renders = {col: [] for col in loaded.frames}
             for i, grids in enumerate(media):
-                for col, stack in render_medium(grids, data, frames, spp, seed=1 + i).items():
+                for col, stack in render_medium(grids, data, loaded.frames, loaded.spp,
+                                                seed=1 + i).items():
                     renders[col].append(stack)
             row = {"label": label, "run": str(run), "sampler": name,
                    "temperature": settings.temperature,
