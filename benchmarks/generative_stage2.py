@@ -88,6 +88,14 @@ CONFIGS = {
         "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
         *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
         "model.lr.light=1.0e-2"],
+    # and twin rays through every photo ray's pixel (an unbiased photo loss): a single ray's
+    # squared error adds its variance inside the pixel, a pull toward media blurred at the
+    # pixel's scale, and the reconstructions hold about twice the floor's mass where the
+    # true media are empty
+    "two_a_step_dim16_free_offsets_anneal_slow_twins": [
+        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
+        *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
+        "model.lr.light=1.0e-2", "budget.rte.photo_twins=512"],
     # and Adam stepping each member's code and offsets only on its own steps: plain Adam
     # moves an undrawn member by its last draw's momentum, about sqrt(16 / 2) learning
     # rates for each gradient it gets, where a single scene's parameter moves by about one
