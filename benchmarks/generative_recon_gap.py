@@ -48,8 +48,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import append_rows, read_table, unfinished_run_error
-from benchmarks.generative_sampling import COLUMNS, spread
+from benchmarks.common import append_rows, read_table
+from benchmarks.generative_sampling import COLUMNS, add_run_arguments, checked_run, spread
 
 ROOT = Path(__file__).resolve().parent.parent
 TABLE = ROOT / "docs" / "data" / "generative_recon_gap.csv"
@@ -259,9 +259,7 @@ def summary(rows: list[dict], blur: list[dict], bands: list[dict] = ()) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--from-run", type=Path, default=None,
-                        help="a finished generative stage-2 run folder")
-    parser.add_argument("--label", default=None, help="the run's name in the tables")
+    add_run_arguments(parser)
     parser.add_argument("--seeds", default="0,1,2",
                         help="the FID's seeds; empty (--seeds '') for the blur and band rows alone")
     parser.add_argument("--table", type=Path, default=TABLE)
@@ -273,14 +271,9 @@ def main() -> None:
         print(summary(read_table(args.table), read_table(args.blur_table),
                       read_table(args.band_table)))
         return
-    if args.from_run is None:
-        parser.error("--from-run: name a finished generative stage-2 run folder.")
-    problem = unfinished_run_error(args.from_run)
-    if problem:
-        parser.error(f"--from-run: {problem}")
-    measure(args.from_run.resolve(), args.label or args.from_run.name,
-            [int(s) for s in args.seeds.split(",") if s], args.table, args.blur_table,
-            args.band_table)
+    run, label = checked_run(parser, args)
+    measure(run, label, [int(s) for s in args.seeds.split(",") if s], args.table,
+            args.blur_table, args.band_table)
 
 
 if __name__ == "__main__":

@@ -266,11 +266,27 @@ def summary(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--from-run`` (a finished generative stage-2 run folder) and ``--label``."""
     parser.add_argument("--from-run", type=Path, default=None,
                         help="a finished generative stage-2 run folder")
-    parser.add_argument("--label", default=None, help="the run's name in the table")
+    parser.add_argument("--label", default=None, help="the run's name in the tables")
+
+
+def checked_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[Path, str]:
+    """``--from-run`` resolved and its label (``--label``, else the folder's name); a
+    missing or unfinished run is the parser's error (status 2)."""
+    if args.from_run is None:
+        parser.error("--from-run: name a finished generative stage-2 run folder.")
+    problem = unfinished_run_error(args.from_run)
+    if problem:
+        parser.error(f"--from-run: {problem}")
+    return args.from_run.resolve(), args.label or args.from_run.name
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_run_arguments(parser)
     parser.add_argument("--samplers", default="gaussian,gaussian_t0.7,bootstrap_h0.25,"
                         "bootstrap_h0.5,bootstrap_scott")
     parser.add_argument("--seeds", default="0,1,2")
@@ -281,17 +297,12 @@ def main() -> None:
     if args.summary:
         print(summary(read_table(args.table)))
         return
-    if args.from_run is None:
-        parser.error("--from-run: name a finished generative stage-2 run folder.")
-    problem = unfinished_run_error(args.from_run)
-    if problem:
-        parser.error(f"--from-run: {problem}")
+    run, label = checked_run(parser, args)
     samplers = args.samplers.split(",")
     unknown = [s for s in samplers if s not in SAMPLERS]
     if unknown:
         parser.error(f"--samplers: unknown {unknown}; choose from {sorted(SAMPLERS)}.")
-    measure(args.from_run.resolve(), args.label or args.from_run.name, samplers,
-            [int(s) for s in args.seeds.split(",")], args.n, args.table)
+    measure(run, label, samplers, [int(s) for s in args.seeds.split(",")], args.n, args.table)
 
 
 if __name__ == "__main__":
