@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -209,7 +210,7 @@ def measure(run: Path, label: str, seeds: list[int], table: Path, blur_table: Pa
               flush=True)
 
 
-def summary(rows: list[dict], blur: list[dict], bands: list[dict] = ()) -> str:
+def summary(rows: list[dict], blur: list[dict], bands: Sequence[dict] = ()) -> str:
     """Per (label, set): FID under both skies, mean ± sd over seeds, and its change from
     the reconstructions' (seed by seed: both scored on the same crops), mean ± sd; then per
     (label, medium) the blur whose MSE is least; then per (label, medium, band) its share
