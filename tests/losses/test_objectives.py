@@ -69,8 +69,9 @@ def test_every_stage_and_mode_names_its_units_in_its_config(stage):
     given = OmegaConf.to_container(cfg.model.objectives, resolve=True)
     assert {name: (entry["_target_"], entry["_partial_"]) for name, entry in given.items()} == {
         name: (f"{unit.__module__}.{unit.__name__}", True) for name, unit in units.items()}
-    # an objective's keywords are its sample counts and settings, whole numbers from the preset
-    assert all(isinstance(v, int | float | str | bool) for entry in given.values()
+    # an objective's keywords are its sample counts and settings, numbers from the preset,
+    # or null for a setting that is off (the extinction prior's saturation)
+    assert all(isinstance(v, int | float | str | bool | None) for entry in given.values()
                for v in entry.values())
     assert check_objectives(cfg) == units
     check_mode(cfg)
