@@ -43,6 +43,12 @@ TABLE = ROOT / "docs" / "data" / "generative_stage2.csv"
 FREE_OFFSETS = ["mode.latent.member_offsets=true", "mode.latent.offset_prior_weight=0",
                 "mode.latent.light_offsets=true"]
 """Free feature offsets (no prior) for each member's medium and light."""
+ANNEAL_SLOW = ["data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
+               *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
+               "model.lr.light=1.0e-2"]
+"""Two members a step from a d_z = 16 stage 1, free offsets, every rate annealed to 1/100
+of its start from half the medium's and the light's: the setting that takes every member
+below its start (docs/generative.md); the levers after it add to it."""
 CONFIGS = {
     "default": [],
     # two members a step (each drawn member gets 8x the photo rays of a step over all 16),
@@ -84,36 +90,27 @@ CONFIGS = {
                                              "mode.latent.dim=16", *FREE_OFFSETS,
                                              "model.lr_final_factor=0.01"],
     # and half the medium's and the light's start rates: twice them undid the offsets' gain
-    "two_a_step_dim16_free_offsets_anneal_slow": [
-        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
-        *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
-        "model.lr.light=1.0e-2"],
+    "two_a_step_dim16_free_offsets_anneal_slow": ANNEAL_SLOW,
     # and twin rays through every photo ray's pixel (an unbiased photo loss): a single ray's
     # squared error adds its variance inside the pixel, a pull toward media blurred at the
     # pixel's scale, and the reconstructions hold about twice the floor's mass where the
     # true media are empty
-    "two_a_step_dim16_free_offsets_anneal_slow_twins": [
-        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
-        *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
-        "model.lr.light=1.0e-2", "budget.rte.photo_twins=512"],
+    "two_a_step_dim16_free_offsets_anneal_slow_twins": [*ANNEAL_SLOW,
+                                                        "budget.rte.photo_twins=512"],
     # and the extinction prior saturated at 0.5 (s log(1 + sigma_t / s)) at ten times the
     # weight: dense cores pushed about as before, thin cells up to ten times harder; the
     # reconstructions hold 8.6x the truth's extinction where it is thin (< 0.5), a halo of
     # the stage-1 density's blur that the photos see only faintly
     "two_a_step_dim16_free_offsets_anneal_slow_sparse": [
-        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
-        *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
-        "model.lr.light=1.0e-2", "losses.objectives.extinction_prior.saturation=0.5",
+        *ANNEAL_SLOW, "losses.objectives.extinction_prior.saturation=0.5",
         "losses.weights.extinction_prior=1.0e-3"],
     # and the extinction prior at 3e-5 instead of 1e-4 (a weight the path-tracing
     # baseline's tuning tried, docs/baseline.md): single-scene stage 2 started from the
-    # truth of a dense member ends at 26.6 with the prior at 1e-4, its dense cores 0.69 low
-    # on average, and at 16.3 without it; the reconstructions' dense cores hold 0.91x the
-    # truth's extinction
+    # truth of a dense member ends at 26.6 with the prior at 1e-4 (its dense cores' extinction
+    # 0.69 below the truth's on average) and at 16.3 without it; the reconstructions' dense
+    # cores hold 0.91x the truth's extinction
     "two_a_step_dim16_free_offsets_anneal_slow_prior3e-5": [
-        "data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.dim=16",
-        *FREE_OFFSETS, "model.lr_final_factor=0.01", "model.lr.medium=1.0e-2",
-        "model.lr.light=1.0e-2", "losses.weights.extinction_prior=3.0e-5"],
+        *ANNEAL_SLOW, "losses.weights.extinction_prior=3.0e-5"],
     # and Adam stepping each member's code and offsets only on its own steps: plain Adam
     # moves an undrawn member by its last draw's momentum, about sqrt(16 / 2) learning
     # rates for each gradient it gets, where a single scene's parameter moves by about one
