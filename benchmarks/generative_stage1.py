@@ -50,6 +50,10 @@ CONFIGS = {
     # sixteen code dimensions (d_z = 16) instead of the paper's four: room for each of 16
     # members' stage-2 corrections to differ (the decoders read z; the code bounds how far)
     "latent_dim16": ["mode.latent.dim=16"],
+    # and four times the preset's steps: stage 1's densities are blurred about 3 cells wide
+    # (docs/generative.md, "Where the reconstructions' gap sits") and twice the steps added
+    # 0.04 of density correlation over one
+    "latent_dim16_long": ["mode.latent.dim=16", "mode.latent.ea_steps_scale=4"],
     "single": [],  # the reference: single-scene stage 1 on each member (single_row)
 }
 """The configurations measured, by name: their overrides of the generative defaults."""
