@@ -43,8 +43,9 @@ class ExtinctionPrior(Objective):
 
     def __init__(self, name: str, schedule: WeightSchedule, saturation: float | None = None):
         super().__init__(name, schedule)
-        if saturation is not None and not (isinstance(saturation, int | float)
-                                           and math.isfinite(saturation) and saturation > 0):
+        number = isinstance(saturation, int | float) and not isinstance(saturation, bool)
+        if saturation is not None and not (number and math.isfinite(saturation)
+                                           and saturation > 0):
             raise ConfigError(
                 f"losses.objectives.{name}.saturation={saturation}: the extinction (inverse "
                 "length) above which the prior grows only logarithmically, a finite number "

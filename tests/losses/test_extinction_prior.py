@@ -55,7 +55,7 @@ def test_its_gradient_in_the_exponent_is_at_most_s_and_pushes_thin_cells_harder(
     assert float(ratio[1]) == pytest.approx(10 * 0.5 / 0.7)
 
 
-@pytest.mark.parametrize("saturation", [0.0, -1.0, float("nan"), float("inf"), "high"])
+@pytest.mark.parametrize("saturation", [0.0, -1.0, float("nan"), float("inf"), "high", True])
 def test_a_saturation_that_is_no_positive_number_is_refused_naming_its_key(saturation):
     with pytest.raises(ConfigError, match=r"losses\.objectives\.extinction_prior\.saturation"):
         prior(saturation)
