@@ -164,8 +164,7 @@ def load_run(run: Path, n: int) -> LoadedRun:
     if model.holds_member_offsets:
         model.fold_offsets(AUTO_FOLD_STEPS, SampleSettings().fold_lr)
     select_variant("auto")
-    # conf/sample.yaml's FID counts (SampleSettings' own defaults differ: 4 crops, all views)
-    base = SampleSettings(n=n, fid_n_crops=2, fid_real_views=8)
+    base = SampleSettings(n=n)  # conf/sample.yaml's FID counts
     res = int(data.truths[0]["g"].shape[0])
     recon_rows, recon_media = reconstruction(model, data, res)
     cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])

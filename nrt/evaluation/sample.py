@@ -128,7 +128,8 @@ def load_family_data(family: Family, effects: dict) -> FamilyData:
 
 @dataclass
 class SampleSettings:
-    """``conf/sample.yaml``'s keys in one place (see there for their meaning)."""
+    """``conf/sample.yaml``'s keys in one place, with its defaults (see there for their
+    meaning)."""
 
     n: int = 16
     seed: int = 0
@@ -141,8 +142,8 @@ class SampleSettings:
     export_mitsuba: bool = True
     export_exr: bool = True
     fid_crop: int | None = None
-    fid_n_crops: int = 4
-    fid_real_views: int | None = None
+    fid_n_crops: int = 2
+    fid_real_views: int | None = 8
     fid_truth_reference: bool = True
     fid_recon_reference: bool = False
     interpolate_members: Sequence[int] | None = None

@@ -219,6 +219,16 @@ def test_bad_fold_settings_name_their_key(settings, key):
         settings.check()
 
 
+def test_settings_defaults_are_the_config_defaults():
+    """``SampleSettings()`` is ``conf/sample.yaml`` as composed: code that builds settings
+    without the CLI (the benchmarks) scores at the counts ``nrt-sample`` uses."""
+    from dataclasses import asdict
+
+    from nrt.cli.sample import settings_of
+
+    assert asdict(settings_of(compose_config("sample"))) == asdict(SampleSettings())
+
+
 def test_auto_folds_a_run_with_offsets_and_leaves_one_without():
     """``fold.steps=auto`` (the default) folds exactly where there are offsets to fold; a
     number is taken as given, whatever the run holds (0 samples the unfolded decoder)."""
