@@ -49,6 +49,9 @@ ANNEAL_SLOW = ["data.members_per_step=2", "budget.rte.steps=4500", "mode.latent.
 """Two members a step from a d_z = 16 stage 1, free offsets, every rate annealed to 1/100
 of its start from half the medium's and the light's: the setting that takes every member
 below its start (docs/generative.md); the levers after it add to it."""
+ANNEAL_SLOW_LONG = [*(o for o in ANNEAL_SLOW if not o.startswith("budget.rte.steps=")),
+                    "budget.rte.steps=9000"]
+"""The same in twice the steps, the anneal stretched over them."""
 CONFIGS = {
     "default": [],
     # two members a step (each drawn member gets 8x the photo rays of a step over all 16),
@@ -111,6 +114,13 @@ CONFIGS = {
     # cores hold 0.91x the truth's extinction
     "two_a_step_dim16_free_offsets_anneal_slow_prior3e-5": [
         *ANNEAL_SLOW, "losses.weights.extinction_prior=3.0e-5"],
+    # in twice the steps, the anneal stretched over them: each member drawn on 1125 steps
+    # against 562; stage 2 holds a sharp medium when started from the truth and from a
+    # blurred start removes part of the blur in its steps
+    "two_a_step_dim16_free_offsets_anneal_slow_long": ANNEAL_SLOW_LONG,
+    # and twin photo rays: the two levers that each brought the reconstructions closest
+    "two_a_step_dim16_free_offsets_anneal_slow_long_twins": [*ANNEAL_SLOW_LONG,
+                                                             "budget.rte.photo_twins=512"],
     # and Adam stepping each member's code and offsets only on its own steps: plain Adam
     # moves an undrawn member by its last draw's momentum, about sqrt(16 / 2) learning
     # rates for each gradient it gets, where a single scene's parameter moves by about one
