@@ -3,7 +3,8 @@ against the true media's, over several seeds, and how far its samples lie from t
 
 ``nrt-sample`` draws new codes from the Gaussian fitted to the learned ones
 (:mod:`nrt.evaluation.latent_gaussian`); this benchmark holds one finished generative stage-2
-run (``--from-run``, folded first where it holds member offsets, as ``nrt-sample`` folds it)
+run (``--from-run``, folded first where it holds member offsets, as ``nrt-sample`` folds it,
+with ``--fold-bandwidth`` as its ``fold.bandwidth``)
 and compares samplers of its codes (:data:`SAMPLERS`): the Gaussian, the Gaussian at a lower
 temperature, and smoothed bootstraps of the codes at several bandwidths, from the learned
 codes themselves (h = 0) toward the Gaussian (h -> infinity). For each seed and sampler it
@@ -24,13 +25,13 @@ repeats a learned code), against the reconstructions' distance to their nearest 
 the nearest member's true medium (``nearest_truth``), against the reconstructions' own error
 (``recon_own``) and the true media's distance to their nearest other one (``members_apart``).
 An average of the members lies close to all of them in this measure, so a small
-``nearest_truth`` alone says little. A row per (run, sampler, seed) in ``--table``; rows
-already there are skipped, so a killed benchmark continues; ``--summary`` prints the mean
-and spread over seeds.
+``nearest_truth`` alone says little. A row per (run, fold bandwidth, sampler, seed) in
+``--table``; rows already there are skipped, so a killed benchmark continues; ``--summary``
+prints the mean and spread over seeds.
 
     python -m benchmarks.generative_sampling --from-run DIR [--label NAME]
         [--samplers gaussian,gaussian_t0.7,bootstrap_h0.25,bootstrap_h0.5,bootstrap_scott]
-        [--seeds 0,1,2] [--n 16]
+        [--seeds 0,1,2] [--n 16] [--fold-bandwidth scott]
         [--table docs/data/generative_sampling.csv] [--summary]
 """
 
@@ -67,7 +68,7 @@ REFERENCES = ("_truth", "_floor", "_recon")
 FIELDS = ("label", "run", "sampler", "temperature", "bandwidth", "seed", "n",
           *(f"fid_{col}{ref}" for col in COLUMNS for ref in ("", *REFERENCES)),
           "nearest_recon", "recons_apart", "nearest_truth", "recon_own", "members_apart",
-          "sample_s")
+          "sample_s", "fold_bandwidth")
 
 
 def sigma_t_mse(a: dict, b: dict, effects: dict) -> float:
@@ -143,14 +144,15 @@ class LoadedRun:
                       self.reals, references)
 
 
-def load_run(run: Path, n: int) -> LoadedRun:
-    """:class:`LoadedRun` of the run folder ``run`` for ``n`` media per FID."""
+def load_run(run: Path, n: int, fold_bandwidth: float | str | None = None) -> LoadedRun:
+    """:class:`LoadedRun` of the run folder ``run`` for ``n`` media per FID, folded as
+    ``nrt-sample`` folds it with ``fold.bandwidth=fold_bandwidth``."""
     from nrt.data.family import load_family
     from nrt.data.grids import resample_grids
     from nrt.evaluation.runs import load_generative_model, open_generative_run, read_run_folder
     from nrt.evaluation.sample import (
-        AUTO_FOLD_STEPS,
         SampleSettings,
+        fold,
         load_family_data,
         real_images,
         reconstruction,
@@ -161,10 +163,9 @@ def load_run(run: Path, n: int) -> LoadedRun:
     info = open_generative_run(run)
     data = load_family_data(load_family(info.family_dir), info.effects)
     model = load_generative_model(info)
-    if model.holds_member_offsets:
-        model.fold_offsets(AUTO_FOLD_STEPS, SampleSettings().fold_lr)
+    base = SampleSettings(n=n, fold_bandwidth=fold_bandwidth)  # conf/sample.yaml's FID counts
+    fold(model, base)
     select_variant("auto")
-    base = SampleSettings(n=n)  # conf/sample.yaml's FID counts
     res = int(data.truths[0]["g"].shape[0])
     recon_rows, recon_media = reconstruction(model, data, res)
     cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])
@@ -180,17 +181,20 @@ def load_run(run: Path, n: int) -> LoadedRun:
 
 
 def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int,
-            table: Path) -> None:
-    """The rows of ``run`` for every (sampler, seed) not yet in ``table``."""
+            table: Path, fold_bandwidth: float | str | None = None) -> None:
+    """The rows of ``run`` folded with ``fold_bandwidth`` for every (sampler, seed) not yet
+    in ``table``."""
     from nrt.evaluation.latent_gaussian import fit_latent_gaussian
     from nrt.evaluation.sample import SampleSettings, decode, render_medium
 
-    done = {(r["run"], r["sampler"], r["seed"]) for r in read_table(table)}
+    fold_key = "" if fold_bandwidth is None else str(fold_bandwidth)
+    done = {(r["run"], r["sampler"], r["seed"], r.get("fold_bandwidth") or "")
+            for r in read_table(table)}
     todo = [(s, name) for s in seeds for name in samplers
-            if (str(run), name, str(s)) not in done]
+            if (str(run), name, str(s), fold_key) not in done]
     if not todo:
         return
-    loaded = load_run(run, n)
+    loaded = load_run(run, n, fold_bandwidth)
     data, model, res = loaded.data, loaded.model, loaded.resolution
     gauss = fit_latent_gaussian(model.codes.detach().float().cpu(), loaded.base.shrinkage)
     recon_media = loaded.recon_media
@@ -231,6 +235,7 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
                        "recon_own": recon_own, "members_apart": apart}
             row.update({k: f"{v:.4f}" for k, v in novelty.items()})
             row["sample_s"] = f"{time.perf_counter() - start:.1f}"
+            row["fold_bandwidth"] = fold_key
             append_rows(table, FIELDS, [row])
             print(summary(read_table(table)), flush=True)
 
@@ -290,6 +295,9 @@ def main() -> None:
                         "bootstrap_h0.5,bootstrap_scott")
     parser.add_argument("--seeds", default="0,1,2")
     parser.add_argument("--n", type=int, default=16, help="media to sample")
+    parser.add_argument("--fold-bandwidth", default=None,
+                        help="nrt-sample's fold.bandwidth: scott or a number (default: null, "
+                        "the fold fits at the codes alone)")
     parser.add_argument("--table", type=Path, default=TABLE)
     parser.add_argument("--summary", action="store_true", help="print the table and stop")
     args = parser.parse_args()
@@ -301,7 +309,14 @@ def main() -> None:
     unknown = [s for s in samplers if s not in SAMPLERS]
     if unknown:
         parser.error(f"--samplers: unknown {unknown}; choose from {sorted(SAMPLERS)}.")
-    measure(run, label, samplers, [int(s) for s in args.seeds.split(",")], args.n, args.table)
+    fold_bandwidth = args.fold_bandwidth
+    if fold_bandwidth not in (None, "scott"):
+        try:
+            fold_bandwidth = float(fold_bandwidth)
+        except ValueError:
+            parser.error(f"--fold-bandwidth={fold_bandwidth}: give scott or a number >= 0.")
+    measure(run, label, samplers, [int(s) for s in args.seeds.split(",")], args.n, args.table,
+            fold_bandwidth)
 
 
 if __name__ == "__main__":

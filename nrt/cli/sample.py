@@ -42,13 +42,13 @@ def settings_of(cfg: DictConfig):
         fid_recon_reference=cfg.fid.recon_reference,
         interpolate_members=None if members is None else list(members),
         interpolate_steps=cfg.interpolate.steps, picture_max_samples=cfg.picture.max_samples,
-        fold_steps=cfg.fold.steps, fold_lr=cfg.fold.lr)
+        fold_steps=cfg.fold.steps, fold_lr=cfg.fold.lr, fold_bandwidth=cfg.fold.bandwidth)
 
 
 def sample_task(cfg: DictConfig) -> dict:
     from nrt.data.family import load_family
     from nrt.evaluation.runs import load_generative_model, open_generative_run
-    from nrt.evaluation.sample import load_family_data, make_fid, sample_media
+    from nrt.evaluation.sample import fold, load_family_data, make_fid, sample_media
     from nrt.mitsuba.variant import select_variant
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -67,8 +67,7 @@ def sample_task(cfg: DictConfig) -> dict:
         except NrtError as exc:
             raise NrtError(f"{exc} Or skip FID with fid.enabled=false.") from None
     model = load_generative_model(run, str(cfg.checkpoint))
-    fold_steps = settings.fold_steps_for(model.holds_member_offsets)
-    folded = model.fold_offsets(fold_steps, settings.fold_lr) if fold_steps else {}
+    folded = fold(model, settings)
     select_variant(str(cfg.render.variant))
     result = sample_media(model, data, settings, out_dir, fid)
     result.metrics.update(folded)

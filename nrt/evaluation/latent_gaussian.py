@@ -79,9 +79,16 @@ class LatentGaussian:
         rounds = -(-int(n) // self.count)
         pick = torch.cat([torch.randperm(self.count, generator=gen)
                           for _ in range(rounds)])[:int(n)]
-        eps = torch.randn(int(n), self.dim, generator=gen, dtype=torch.float64)
+        return self.around(pick, float(bandwidth), gen)
+
+    def around(self, members: torch.Tensor, bandwidth: float,
+               generator: torch.Generator) -> torch.Tensor:
+        """One smoothed-bootstrap draw at ``bandwidth`` h around each code of ``members``
+        (M,) (indices into ``codes``), (M, dim) float32: the code plus Gaussian noise of
+        covariance ``h^2 Sigma``, shrunk toward the mean by ``1 / sqrt(1 + h^2)``."""
+        eps = torch.randn(len(members), self.dim, generator=generator, dtype=torch.float64)
         h = float(bandwidth)
-        centred = self.codes[pick] - self.mean
+        centred = self.codes[members] - self.mean
         return (self.mean + (centred + h * eps @ self.factor().T) / math.sqrt(1 + h * h)
                 ).float()
 

@@ -61,6 +61,7 @@ from nrt.evaluation.latent_gaussian import (
 )
 from nrt.evaluation.rerender import render_frames
 from nrt.metrics import FID
+from nrt.modules.fields.latent_grid import CodeKernel
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,8 @@ class LatentMediumModel(Protocol):
     codes: torch.Tensor
     holds_member_offsets: bool
 
-    def fold_offsets(self, steps: int, lr: float) -> dict[str, float]: ...
+    def fold_offsets(self, steps: int, lr: float, kernel: CodeKernel | None = None
+                     ) -> dict[str, float]: ...
 
     def member_names(self) -> list[str]: ...
 
@@ -151,6 +153,7 @@ class SampleSettings:
     picture_max_samples: int = 16
     fold_steps: int | str = "auto"
     fold_lr: float = 0.02
+    fold_bandwidth: float | str | None = None
 
     def fold_steps_for(self, member_offsets: bool) -> int:
         """The fold's Adam steps for a run whose medium holds member offsets (or not):
@@ -163,9 +166,12 @@ class SampleSettings:
     def bandwidth_for(self, count: int, dim: int) -> float | None:
         """The smoothed bootstrap's bandwidth for K = ``count`` codes of ``dim`` values
         (``"scott"``: Scott's rule), or None to draw from the Gaussian."""
-        if self.bandwidth == "scott":
-            return scott_bandwidth(count, dim)
-        return None if self.bandwidth is None else float(self.bandwidth)
+        return bandwidth_value(self.bandwidth, count, dim)
+
+    def fold_bandwidth_for(self, count: int, dim: int) -> float | None:
+        """The bandwidth of the codes the fold also fits around each member (as
+        :meth:`bandwidth_for`), or None to fit at the codes alone."""
+        return bandwidth_value(self.fold_bandwidth, count, dim)
 
     def check(self, members: int | None = None) -> None:
         """Refuse values no sampling can use (before anything is loaded or rendered)."""
@@ -200,6 +206,11 @@ class SampleSettings:
             bad.append(("gaussian.bandwidth", self.bandwidth,
                         "null (draw from the Gaussian), scott or a number >= 0 (a smoothed "
                         "bootstrap of the learned codes)"))
+        if self.fold_bandwidth is not None and self.fold_bandwidth != "scott" \
+                and not positive(self.fold_bandwidth, least_open=False):
+            bad.append(("fold.bandwidth", self.fold_bandwidth,
+                        "null (fit at the learned codes alone), scott or a number >= 0 (also "
+                        "at codes drawn around each member by a smoothed bootstrap)"))
         if bad:
             key, value, meaning = bad[0]
             raise NrtError(f"{key}={value!r}: must be {meaning}. "
@@ -212,6 +223,33 @@ class SampleSettings:
             raise NrtError(f"interpolate.members={list(pair)}: give two different members "
                            f"({top}) to interpolate between, or null for the two codes "
                            "farthest apart.")
+
+
+def bandwidth_value(bandwidth: float | str | None, count: int, dim: int) -> float | None:
+    """A bandwidth setting as a number for K = ``count`` codes of ``dim`` values
+    (``"scott"``: Scott's rule; None stays None)."""
+    if bandwidth == "scott":
+        return scott_bandwidth(count, dim)
+    return None if bandwidth is None else float(bandwidth)
+
+
+def fold(model: LatentMediumModel, settings: SampleSettings) -> dict[str, float]:
+    """Fold ``model``'s member offsets into its shared decoder as ``settings`` say
+    (``fold_steps``, ``fold_lr``; with ``fold_bandwidth``, also around each code, at draws
+    of the smoothed bootstrap of the Gaussian fitted to the codes): the fold's figures, or
+    {} where there is nothing to fold."""
+    steps = settings.fold_steps_for(model.holds_member_offsets)
+    if not steps:
+        return {}
+    codes = model.codes.detach().float().cpu()
+    bandwidth = settings.fold_bandwidth_for(*codes.shape)
+    kernel = None
+    if bandwidth is not None:
+        gauss = fit_latent_gaussian(codes, settings.shrinkage)
+        def kernel(members: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+            return gauss.around(members, bandwidth, generator)
+    figures = model.fold_offsets(steps, settings.fold_lr, kernel)
+    return figures if bandwidth is None else {**figures, "fold_bandwidth": bandwidth}
 
 
 @dataclass

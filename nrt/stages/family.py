@@ -51,6 +51,7 @@ from torch.profiler import record_function
 
 from nrt.data.grids import MEDIUM_GRIDS_FILE, save_property_grids
 from nrt.errors import ConfigError, DatasetError
+from nrt.modules.fields.latent_grid import CodeKernel
 from nrt.modules.fields.medium import property_grids
 from nrt.modules.fields.protocols import LatentScatteredLightField, LatentVoxelisedMedium
 from nrt.physics.volume import at_cell_centres
@@ -321,12 +322,14 @@ class SceneFamily(nn.Module):
         return blocks + [(p, k, -1) for p in (*self.medium.member_blocks(),
                                               *self.light.member_blocks())]
 
-    def fold_offsets(self, steps: int, lr: float) -> dict[str, float]:
+    def fold_offsets(self, steps: int, lr: float, kernel: CodeKernel | None = None
+                     ) -> dict[str, float]:
         """Fold the members' feature offsets into the medium's shared decoder (the medium's
         ``fold_offsets``, each member's cells weighed by its EA density under its code), so
         that the decoder a new code reads carries what the members recovered; afterwards
-        every member decodes from its code alone. Returns the fit's objective before and
-        after (``fold_start``, ``fold_end``), its steps and its seconds."""
+        every member decodes from its code alone. With a ``kernel`` (codes drawn around the
+        members) the decoder is fitted around each code too. Returns the fit's objective
+        before and after (``fold_start``, ``fold_end``), its steps and its seconds."""
         if not self.holds_member_offsets:
             raise ConfigError("fold.steps > 0, but this run's medium holds no member offsets "
                               "(it was trained with mode.latent.member_offsets=false): there is "
@@ -339,7 +342,7 @@ class SceneFamily(nn.Module):
             raise ConfigError("fold.steps > 0, but no member of this run has density on any "
                               "cell (its EA density is zero under every code): there is "
                               "nothing to fold. Sample it with fold.steps=0.")
-        before, after = self.medium.fold_offsets(density, codes, steps, lr)
+        before, after = self.medium.fold_offsets(density, codes, steps, lr, kernel)
         return {"fold_start": before, "fold_end": after, "fold_steps": float(steps),
                 "fold_s": time.perf_counter() - start}
 

@@ -201,6 +201,31 @@ def test_smoothed_bootstrap_runs_from_the_codes_to_the_gaussian():
     assert 0.86 < scott_bandwidth(16, 16) < 0.88
 
 
+def test_draws_around_a_code_are_the_bootstrap_kernel_at_that_code():
+    """``around`` draws the smoothed bootstrap's kernel at each given code: for code k,
+    mean ``mu + (z_k - mu) / sqrt(1 + h^2)`` and covariance ``h^2 Sigma / (1 + h^2)``,
+    checked on 20000 draws at h = 0.5 within 4 standard errors (as above); h = 0 gives the
+    code itself. ``sample`` with a bandwidth reads the same kernel: the same generator
+    state gives the same draws."""
+    gen = torch.Generator().manual_seed(5)
+    codes = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    fit = fit_latent_gaussian(codes)
+    members = torch.tensor([1, 4, 4])
+    same = fit.around(members, 0.0, torch.Generator().manual_seed(0)).double()
+    torch.testing.assert_close(same, codes[members], rtol=0, atol=1e-6)
+    k, h = 20_000, 0.5
+    drawn = fit.around(torch.full((k,), 4), h, torch.Generator().manual_seed(1)).double()
+    mean = fit.mean + (codes[4] - fit.mean) / (1 + h * h) ** 0.5
+    sigma = h * h * fit.cov / (1 + h * h)
+    off = drawn - drawn.mean(0)
+    se = (off[:, :, None] * off[:, None, :]).std(dim=0) / k**0.5
+    assert ((torch.cov(drawn.T) - sigma).abs() <= 4 * se).all()
+    assert ((drawn.mean(0) - mean).abs() <= 4 * (torch.diagonal(sigma) / k).sqrt()).all()
+    gen = torch.Generator().manual_seed(2)
+    pick = torch.randperm(6, generator=gen)
+    assert torch.equal(fit.sample(6, seed=2, bandwidth=h), fit.around(pick, h, gen))
+
+
 @pytest.mark.parametrize("bad", ["half", -0.1, 1.5, True])
 def test_bad_shrinkage_and_too_few_codes_are_refused(bad):
     with pytest.raises(ConfigError, match="shrinkage"):
@@ -213,7 +238,9 @@ def test_bad_shrinkage_and_too_few_codes_are_refused(bad):
     (SampleSettings(fold_steps=-1), "fold.steps=-1"),
     (SampleSettings(fold_steps=None), "fold.steps=None"),
     (SampleSettings(fold_lr=0.0), "fold.lr=0.0"),
-    (SampleSettings(fold_lr="fast"), "fold.lr='fast'")])
+    (SampleSettings(fold_lr="fast"), "fold.lr='fast'"),
+    (SampleSettings(fold_bandwidth=-0.5), "fold.bandwidth=-0.5"),
+    (SampleSettings(fold_bandwidth="wide"), "fold.bandwidth='wide'")])
 def test_bad_fold_settings_name_their_key(settings, key):
     with pytest.raises(NrtError, match=re.escape(key)):
         settings.check()

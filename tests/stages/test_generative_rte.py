@@ -28,6 +28,8 @@ from nrt.cli.train import resolve_ea_checkpoint
 from nrt.data.family import ensure_family
 from nrt.data.grids import load_property_grids
 from nrt.errors import ConfigError, NrtError
+from nrt.evaluation.latent_gaussian import scott_bandwidth
+from nrt.evaluation.sample import SampleSettings, fold
 from nrt.losses.objective import scene_mean
 from nrt.metrics import property_mse
 from nrt.physics.phase import G_MAX
@@ -437,12 +439,20 @@ def test_member_offsets_train_each_member_and_survive_a_checkpoint(family_dir, s
     unfolded = [float((sigma_t(family.property_grids_for(family.codes[k], 16)) - before[k])
                       .square().mean()) for k in range(K)]
     assert loaded.holds_member_offsets  # so nrt-sample's fold.steps=auto folds it
-    fold = loaded.fold_offsets(steps=100, lr=1e-3)  # offsets 24 steps old: a small rate
-    assert fold["fold_end"] < fold["fold_start"] and fold["fold_steps"] == 100
+    plain = loaded.fold_offsets(steps=100, lr=1e-3)  # offsets 24 steps old: a small rate
+    assert plain["fold_end"] < plain["fold_start"] and plain["fold_steps"] == 100
     assert not loaded.medium.modulation.offsets.any()
     folded = [float((sigma_t(loaded.member_property_grids(k, 16)) - before[k])
                     .square().mean()) for k in range(K)]
     assert np.mean(folded) < np.mean(unfolded), (folded, unfolded)
+    # nrt-sample's fold with fold.bandwidth=scott: its objective (at the codes and at draws
+    # around them) falls, and it keeps no offsets
+    around = RTEStage.load_from_checkpoint(run["ckpt"], map_location="cpu").scenes
+    settings = SampleSettings(fold_steps=100, fold_lr=1e-3, fold_bandwidth="scott")
+    figures = fold(around, settings)
+    assert figures["fold_bandwidth"] == scott_bandwidth(*around.codes.shape)
+    assert figures["fold_end"] < figures["fold_start"]
+    assert not around.medium.modulation.offsets.any()
 
 
 class UndrawnMembers(L.Callback):

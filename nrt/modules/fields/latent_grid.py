@@ -16,10 +16,13 @@ With ``members`` K > 0 the decoder also holds a feature offset per member (``off
 the K offsets side by side on the channels of one grid, zero at the start, resampled with
 ``values``): member k's outputs read ``f(x) + offset_k(x)``, a new code's ``f(x)`` alone.
 :func:`fold_offsets` fits the shared features and MLP to what the members' codes and
-offsets decode, so that a new code reads the members' detail too, and zeroes the offsets.
+offsets decode, so that a new code reads the members' detail too, and zeroes the offsets;
+with a kernel of codes around the members it fits the decoder around each code as well.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -27,6 +30,13 @@ from torch import nn
 from nrt.errors import ConfigError
 from nrt.modules.fields.ea_field import mlp
 from nrt.physics.volume import resample_cells, sample_grid
+
+CHECK_DRAWS = 4
+"""Draws around each code at which a fold with a kernel evaluates its objective."""
+CodeKernel = Callable[[torch.Tensor, torch.Generator], torch.Tensor]
+"""Codes drawn around members: (member indices (M,), a CPU generator) -> one code near
+each of those members' codes (M, d_z), e.g. a smoothed bootstrap
+(:meth:`~nrt.evaluation.latent_gaussian.LatentGaussian.around`)."""
 
 
 class LatentGridDecoder(nn.Module):
@@ -115,8 +125,8 @@ class LatentGridDecoder(nn.Module):
 
 
 def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch.Tensor,
-                 steps: int, lr: float, cells_per_member: int = 4096, seed: int = 0
-                 ) -> tuple[float, float]:
+                 steps: int, lr: float, cells_per_member: int = 4096, seed: int = 0,
+                 kernel: CodeKernel | None = None) -> tuple[float, float]:
     """Fit ``decoder``'s shared features and MLP so that each member's code alone decodes
     what its code and its offset decode, then zero the offsets.
 
@@ -129,9 +139,14 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
     ``w_k`` (generator seeded with ``seed``), from the decoder as it is, the rate falling
     from ``lr`` to zero on a cosine. A member whose weight is zero on every cell (a medium
     with no density) has no output that matters and leaves the objective; the mean runs over
-    the others. A fit that ends above its start (a rate too large for small offsets) is
-    undone: the shared decoder stays as it was. Returns the objective, over every cell,
-    before and after the fit."""
+    the others. With a ``kernel`` (codes drawn around the members, :data:`CodeKernel`) each
+    step's estimate is the mean of the one at the codes and the one at a fresh draw around
+    each code, against the same member's output: the decoder is fitted around each code, not
+    only at it, so that a new code drawn near a member decodes near that member's medium;
+    its objective is then the mean of the one at the codes and the one at
+    :data:`CHECK_DRAWS` fixed draws around each code. A fit that ends above its start (a
+    rate too large for small offsets) is undone: the shared decoder stays as it was.
+    Returns the objective, over every cell, before and after the fit."""
     if decoder.offsets is None:
         raise ValueError("this decoder holds no member offsets (members=0).")
     resolution = weights.shape[1]
@@ -150,15 +165,32 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
         targets = [decoder.on_cells(resolution, codes[i], k).reshape(weights.shape[1], -1)
                    for i, k in enumerate(kept_members)]
 
-    def error(k: int, shared: torch.Tensor, cells: torch.Tensor | None) -> torch.Tensor:
-        """Member k's squared output error on ``cells`` (all: None), (cells, out_dim)."""
+    def error(k: int, shared: torch.Tensor, cells: torch.Tensor | None,
+              code: torch.Tensor | None = None) -> torch.Tensor:
+        """Member k's squared output error on ``cells`` (all: None), (cells, out_dim), read
+        at ``code`` (None: its own)."""
         at = slice(None) if cells is None else cells
-        return (decoder._decode(shared[at], codes[k]) - targets[k][at]).square()
+        return (decoder._decode(shared[at], codes[k] if code is None else code)
+                - targets[k][at]).square()
+
+    # the objective's codes: each member's own, and with a kernel also CHECK_DRAWS fixed
+    # draws around it (the same before and after the fit)
+    checked = [[None] for _ in range(members)]
+    if kernel is not None:
+        near = kernel(torch.tensor(kept_members).repeat_interleave(CHECK_DRAWS),
+                      torch.Generator().manual_seed(seed + 1)).to(codes)
+        checked = [[None, *near[k * CHECK_DRAWS:(k + 1) * CHECK_DRAWS]] for k in range(members)]
+
+    def at_code(k: int, shared: torch.Tensor, code: torch.Tensor | None) -> torch.Tensor:
+        return (weights[k, :, None] * error(k, shared, None, code)).sum()
 
     def objective() -> torch.Tensor:  # every cell, weighed
         shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
-        return torch.stack([(weights[k, :, None] * error(k, shared, None)).sum()
-                            for k in range(members)]).mean()
+        return torch.stack([
+            at_code(k, shared, None) if len(checked[k]) == 1 else
+            0.5 * at_code(k, shared, None)
+            + 0.5 * torch.stack([at_code(k, shared, z) for z in checked[k][1:]]).mean()
+            for k in range(members)]).mean()
 
     with torch.no_grad():
         start = float(objective())
@@ -173,6 +205,11 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
                                   generator=generator).to(weights.device)
         estimate = torch.stack([error(k, shared, drawn[k]).sum(-1).mean()
                                 for k in range(members)]).mean()
+        if kernel is not None:
+            near = kernel(torch.tensor(kept_members), generator).to(codes)
+            estimate = 0.5 * estimate + 0.5 * torch.stack(
+                [error(k, shared, drawn[k], near[k]).sum(-1).mean()
+                 for k in range(members)]).mean()
         estimate.backward()
         optimiser.step()
         schedule.step()

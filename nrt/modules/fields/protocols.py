@@ -142,8 +142,10 @@ class LatentVoxelisedMedium(Protocol):
         feature offsets); [] for none."""
 
     def fold_offsets(self, densities: torch.Tensor, codes: torch.Tensor, steps: int,
-                     lr: float) -> tuple[float, float]:
-        """Fit what a new code reads to the members' media (offsets included) and zero the
+                     lr: float, kernel: Callable[[torch.Tensor, torch.Generator], torch.Tensor]
+                     | None = None) -> tuple[float, float]:
+        """Fit what a new code reads to the members' media (offsets included), at their
+        codes and around them where a ``kernel`` draws codes near each member, and zero the
         offsets; the fit's objective before and after."""
 
     def follow_schedule(self, progress: float, optimizer: torch.optim.Optimizer) -> bool:

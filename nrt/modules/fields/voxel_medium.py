@@ -31,7 +31,7 @@ from torch import nn
 from torch.profiler import record_function
 
 from nrt.modules.fields.coarse_to_fine import check_schedule, resample_parameter, resolution_at
-from nrt.modules.fields.latent_grid import LatentGridDecoder, fold_offsets
+from nrt.modules.fields.latent_grid import CodeKernel, LatentGridDecoder, fold_offsets
 from nrt.modules.fields.medium import GridModulation, MediumProperties, NeuralMedium
 from nrt.physics.volume import GridExtinction, at_cell_centres, resample_cells, sample_grid
 
@@ -226,12 +226,13 @@ class LatentVoxelMedium(VoxelMedium):
         return self.modulation.offset_square(members)
 
     def fold_offsets(self, densities: torch.Tensor, codes: torch.Tensor, steps: int,
-                     lr: float) -> tuple[float, float]:
+                     lr: float, kernel: CodeKernel | None = None) -> tuple[float, float]:
         """Fit the shared decoder to the members' media, offsets included, weighing each
-        member's cells by its density (K, R, R, R, 1) under its code (K, d_z), and zero the
-        offsets (:func:`~nrt.modules.fields.latent_grid.fold_offsets`): the fit's objective
-        before and after."""
-        return fold_offsets(self.modulation, codes, densities, steps, lr)
+        member's cells by its density (K, R, R, R, 1) under its code (K, d_z), at the codes
+        and, with a ``kernel``, around them, and zero the offsets
+        (:func:`~nrt.modules.fields.latent_grid.fold_offsets`): the fit's objective before
+        and after."""
+        return fold_offsets(self.modulation, codes, densities, steps, lr, kernel=kernel)
 
     def voxels_for(self, density: torch.Tensor, code: torch.Tensor,
                    member: int | None = None) -> Voxels:
