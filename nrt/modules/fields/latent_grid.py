@@ -173,24 +173,24 @@ def fold_offsets(decoder: LatentGridDecoder, codes: torch.Tensor, weights: torch
         return (decoder._decode(shared[at], codes[k] if code is None else code)
                 - targets[k][at]).square()
 
-    # the objective's codes: each member's own, and with a kernel also CHECK_DRAWS fixed
-    # draws around it (the same before and after the fit)
-    checked = [[None] for _ in range(members)]
-    if kernel is not None:
-        near = kernel(torch.tensor(kept_members).repeat_interleave(CHECK_DRAWS),
-                      torch.Generator().manual_seed(seed + 1)).to(codes)
-        checked = [[None, *near[k * CHECK_DRAWS:(k + 1) * CHECK_DRAWS]] for k in range(members)]
+    # with a kernel, the objective also reads CHECK_DRAWS fixed draws around each code
+    # (members, CHECK_DRAWS, d_z), the same before and after the fit
+    checks = None if kernel is None else kernel(
+        torch.tensor(kept_members).repeat_interleave(CHECK_DRAWS),
+        torch.Generator().manual_seed(seed + 1)).to(codes).reshape(members, CHECK_DRAWS, -1)
 
-    def at_code(k: int, shared: torch.Tensor, code: torch.Tensor | None) -> torch.Tensor:
+    def weighed(k: int, shared: torch.Tensor, code: torch.Tensor | None = None) -> torch.Tensor:
+        """Member k's error over every cell, weighed, read at ``code`` (None: its own)."""
         return (weights[k, :, None] * error(k, shared, None, code)).sum()
 
-    def objective() -> torch.Tensor:  # every cell, weighed
+    def objective() -> torch.Tensor:
         shared = decoder.cell_features(resolution).reshape(-1, decoder.features)
-        return torch.stack([
-            at_code(k, shared, None) if len(checked[k]) == 1 else
-            0.5 * at_code(k, shared, None)
-            + 0.5 * torch.stack([at_code(k, shared, z) for z in checked[k][1:]]).mean()
-            for k in range(members)]).mean()
+        at_codes = torch.stack([weighed(k, shared) for k in range(members)]).mean()
+        if checks is None:
+            return at_codes
+        around = torch.stack([weighed(k, shared, z) for k in range(members)
+                              for z in checks[k]]).mean()
+        return 0.5 * at_codes + 0.5 * around
 
     with torch.no_grad():
         start = float(objective())
