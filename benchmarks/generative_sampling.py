@@ -16,7 +16,10 @@ reconstructions' renders drawn once per seed and shared by every sampler. Seed 0
 Gaussian is what ``nrt-sample seed=0`` reports. A third reference, ``floor``: the true media
 resampled to the run's medium cells (its last ``budget.rte.medium_resolutions``) and back,
 rendered like the others: what the cells alone cost in FID, the least a reconstruction on
-them can score.
+them can score. A fourth, ``unseen``: ``--n`` new media of the family's own generator (the
+seeds after its members', :func:`~nrt.evaluation.sample.unseen_media`), rendered like the
+others: what a sampler that draws new members exactly as the family does would score, where
+``truth`` is what one that repeats the members would.
 
 Novelty, beside FID (sigma_t MSE x100, means over the samples or members): each sample's
 distance to the nearest member's reconstruction (``nearest_recon``: 0 for a sample that
@@ -25,9 +28,10 @@ repeats a learned code), against the reconstructions' distance to their nearest 
 the nearest member's true medium (``nearest_truth``), against the reconstructions' own error
 (``recon_own``) and the true media's distance to their nearest other one (``members_apart``).
 An average of the members lies close to all of them in this measure, so a small
-``nearest_truth`` alone says little. A row per (run, fold bandwidth, sampler, seed) in
-``--table``; rows already there are skipped, so a killed benchmark continues; ``--summary``
-prints the mean and spread over seeds.
+``nearest_truth`` alone says little. The unseen media's distance to the nearest member's
+true medium (``unseen_nearest_truth``) is how far a new member of the family lies. A row
+per (run, fold bandwidth, sampler, seed) in ``--table``; rows already there are skipped, so
+a killed benchmark continues; ``--summary`` prints the mean and spread over seeds.
 
     python -m benchmarks.generative_sampling --from-run DIR [--label NAME]
         [--samplers gaussian,gaussian_t0.7,bootstrap_h0.25,bootstrap_h0.5,bootstrap_scott]
@@ -63,12 +67,16 @@ SAMPLERS = {
 """Sampler name -> its ``nrt-sample`` settings (:class:`SampleSettings`' ``temperature``,
 ``bandwidth``; ``"scott"``: Scott's bandwidth for the run's K and d_z)."""
 COLUMNS = ("train", "novel")
-REFERENCES = ("_truth", "_floor", "_recon")
-"""The true media, the true media on the run's cells, the members' reconstructions."""
+REFERENCES = ("_truth", "_floor", "_recon", "_unseen")
+"""The true media, the true media on the run's cells, the members' reconstructions, and
+new media of the family's own generator (:func:`~nrt.evaluation.sample.unseen_media`)."""
 FIELDS = ("label", "run", "sampler", "temperature", "bandwidth", "seed", "n",
-          *(f"fid_{col}{ref}" for col in COLUMNS for ref in ("", *REFERENCES)),
+          *(f"fid_{col}{ref}" for col in COLUMNS for ref in ("", *REFERENCES[:3])),
           "nearest_recon", "recons_apart", "nearest_truth", "recon_own", "members_apart",
-          "sample_s", "fold_bandwidth")
+          "sample_s", "fold_bandwidth",
+          *(f"fid_{col}_unseen" for col in COLUMNS), "unseen_nearest_truth")
+"""The table's columns; those after ``fold_bandwidth`` came later and are empty on older
+rows."""
 
 
 def sigma_t_mse(a: dict, b: dict, effects: dict) -> float:
@@ -126,6 +134,7 @@ class LoadedRun:
     recon_rows: list
     recon_media: list
     floor: list
+    unseen: list
 
     def renders(self, media: list[dict]) -> dict[str, list[np.ndarray]]:
         """``media`` rendered as the references are (:func:`reference_renders`)."""
@@ -157,11 +166,12 @@ def load_run(run: Path, n: int, fold_bandwidth: float | str | None = None) -> Lo
         real_images,
         reconstruction,
         sky_frames,
+        unseen_media,
     )
     from nrt.mitsuba.variant import select_variant
 
     info = open_generative_run(run)
-    data = load_family_data(load_family(info.family_dir), info.effects)
+    data = load_family_data(load_family(info.family_dir), info.effects, info.scene)
     model = load_generative_model(info)
     base = SampleSettings(n=n, fold_bandwidth=fold_bandwidth)  # conf/sample.yaml's FID counts
     fold(model, base)
@@ -177,7 +187,8 @@ def load_run(run: Path, n: int, fold_bandwidth: float | str | None = None) -> Lo
         reals={col: real_images(data, env, base.fid_real_views)
                for col, env in data.skies.items()},
         recon_rows=recon_rows, recon_media=recon_media,
-        floor=[resample_grids(resample_grids(t, cells), res) for t in data.truths])
+        floor=[resample_grids(resample_grids(t, cells), res) for t in data.truths],
+        unseen=unseen_media(data, n))
 
 
 def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int,
@@ -204,7 +215,8 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
                                             skip_self=True))
     references = {name: loaded.renders(media)
                   for name, media in (("truth", data.truths), ("floor", loaded.floor),
-                                      ("recon", recon_media))}
+                                      ("recon", recon_media), ("unseen", loaded.unseen))}
+    unseen_nearest = statistics.fmean(nearest(loaded.unseen, data.truths, data.effects))
     for seed in sorted({s for s, _ in todo}):
         scorer = loaded.scorer(seed, references)
         for name in [name for s, name in todo if s == seed]:
@@ -232,7 +244,8 @@ def measure(run: Path, label: str, samplers: list[str], seeds: list[int], n: int
                        "recons_apart": recons_apart,
                        "nearest_truth": statistics.fmean(nearest(media, data.truths,
                                                                  data.effects)),
-                       "recon_own": recon_own, "members_apart": apart}
+                       "recon_own": recon_own, "members_apart": apart,
+                       "unseen_nearest_truth": unseen_nearest}
             row.update({k: f"{v:.4f}" for k, v in novelty.items()})
             row["sample_s"] = f"{time.perf_counter() - start:.1f}"
             row["fold_bandwidth"] = fold_key
@@ -255,18 +268,21 @@ def summary(rows: list[dict]) -> str:
     for r in rows:
         groups.setdefault((r["label"], r["sampler"]), []).append(r)
     lines = ["| run | sampler | seeds | FID samples: train | novel | truth: train | novel "
-             "| floor: train | novel | recon: train | novel | samples' nearest recon "
-             "| recons apart | samples' nearest truth | recon own | members apart |",
-             "|---|---|---:|" + "---:|" * 13]
+             "| floor: train | novel | recon: train | novel | unseen: train | novel "
+             "| samples' nearest recon | recons apart | samples' nearest truth | recon own "
+             "| members apart | unseen's nearest truth |",
+             "|---|---|---:|" + "---:|" * 16]
     for (label, name), group in groups.items():
         def col(key: str, group=group) -> str:
-            return spread([float(r[key]) for r in group])
+            values = [float(r[key]) for r in group if r.get(key)]
+            return spread(values) if values else ""
         lines.append(f"| {label} | {name} | {len(group)} | " + " | ".join(
             col(k) for k in ("fid_train", "fid_novel", "fid_train_truth", "fid_novel_truth",
                              "fid_train_floor", "fid_novel_floor",
-                             "fid_train_recon", "fid_novel_recon", "nearest_recon",
-                             "recons_apart", "nearest_truth", "recon_own",
-                             "members_apart")) + " |")
+                             "fid_train_recon", "fid_novel_recon", "fid_train_unseen",
+                             "fid_novel_unseen", "nearest_recon", "recons_apart",
+                             "nearest_truth", "recon_own", "members_apart",
+                             "unseen_nearest_truth")) + " |")
     return "\n".join(lines)
 
 

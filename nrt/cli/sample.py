@@ -40,6 +40,7 @@ def settings_of(cfg: DictConfig):
         export_exr=cfg.export.exr, fid_crop=cfg.fid.crop, fid_n_crops=cfg.fid.n_crops,
         fid_real_views=cfg.fid.real_views, fid_truth_reference=cfg.fid.truth_reference,
         fid_recon_reference=cfg.fid.recon_reference,
+        fid_unseen_reference=cfg.fid.unseen_reference,
         interpolate_members=None if members is None else list(members),
         interpolate_steps=cfg.interpolate.steps, picture_max_samples=cfg.picture.max_samples,
         fold_steps=cfg.fold.steps, fold_lr=cfg.fold.lr, fold_bandwidth=cfg.fold.bandwidth)
@@ -48,7 +49,13 @@ def settings_of(cfg: DictConfig):
 def sample_task(cfg: DictConfig) -> dict:
     from nrt.data.family import load_family
     from nrt.evaluation.runs import load_generative_model, open_generative_run
-    from nrt.evaluation.sample import fold, load_family_data, make_fid, sample_media
+    from nrt.evaluation.sample import (
+        check_unseen,
+        fold,
+        load_family_data,
+        make_fid,
+        sample_media,
+    )
     from nrt.mitsuba.variant import select_variant
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -58,8 +65,10 @@ def sample_task(cfg: DictConfig) -> dict:
         raise NrtError("nrt-sample needs run=<a generative stage-2 run folder of nrt-train> "
                        "(e.g. outputs/family/rte/<timestamp>-<pid>), and n=<media to sample>.")
     run = open_generative_run(cfg.run)
-    data = load_family_data(load_family(run.family_dir), run.effects)
+    data = load_family_data(load_family(run.family_dir), run.effects, run.scene)
     settings.check(members=len(data.family))
+    if settings.fid_unseen_reference and cfg.fid.enabled:
+        check_unseen(data)  # before anything is decoded or rendered
     fid = None
     if cfg.fid.enabled:  # before any decoding or render: a missing network fails in seconds
         try:

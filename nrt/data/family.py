@@ -139,6 +139,15 @@ def member_scenes(scene_cfg: Mapping) -> list[dict]:
     return members
 
 
+def unseen_member_scenes(scene_cfg: Mapping, count: int) -> list[dict]:
+    """The scene configs of ``count`` media the family's generator draws after its K
+    members (seeds ``scene.seed + K`` onward, named as members are): new media of the
+    family that no run trained on, for scoring a generator against the family itself."""
+    members = int(scene_cfg["family"]["members"])
+    wider = {**scene_cfg, "family": {**scene_cfg["family"], "members": members + count}}
+    return member_scenes(wider)[members:]
+
+
 def _manifest(name: str, specs: list[dict], data_root: Path) -> dict:
     """The manifest of a family of resolved member ``specs`` (its hash included)."""
     train, heldout = list(specs[0]["environments"])

@@ -130,12 +130,14 @@ GENERATIVE_RTE = ("nrt-train stage=rte mode=generative scene=family "
 
 @dataclass
 class GenerativeRun:
-    """A generative stage-2 run folder: its family folder and scene effects."""
+    """A generative stage-2 run folder: its family folder, scene effects, model class and
+    scene config (``scene``, with its ``family``)."""
 
     path: Path
     family_dir: Path
     effects: dict
     model_target: str
+    scene: dict
 
 
 def open_generative_run(path: str | Path) -> GenerativeRun:
@@ -157,7 +159,8 @@ def open_generative_run(path: str | Path) -> GenerativeRun:
                        "then nrt-sample run=<that run>.")
     effects = OmegaConf.to_container(cfg.scene.effects, resolve=True)
     return GenerativeRun(path, Path(info["family_dir"]), effects,
-                         str(cfg.model._target_))
+                         str(cfg.model._target_),
+                         OmegaConf.to_container(cfg.scene, resolve=True))
 
 
 def load_generative_model(run: GenerativeRun, checkpoint: str = "last") -> LatentMediumModel:

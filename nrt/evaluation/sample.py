@@ -23,7 +23,11 @@ latent code per family member and a decoder from any code to a medium
    ``recon_reference`` the members' reconstructions (each member's own medium, from its
    learned code and whatever the run keeps per member) are rendered and scored the same
    way, with the true media's render seeds (``*_recon``): truth -> recon is what the
-   reconstruction loses, recon -> samples what sampling new codes adds;
+   reconstruction loses, recon -> samples what sampling new codes adds. With
+   ``unseen_reference`` ``n`` media the family's own generator draws after its members
+   (:func:`unseen_media`: new media of the family, seen by no run) are rendered and scored
+   the same way (``*_unseen``): what a generator that draws new members exactly as the
+   family does would score, where ``*_truth`` is what one that repeats its members would;
 5. scores each member's reconstruction (its own medium) against its ground truth
    (property MSE x 10^2, ``recon_mse_<property>_x100`` the mean over members);
 6. draws a picture of the samples per sky and a strip of media decoded along
@@ -49,8 +53,10 @@ import torch
 
 from nrt.data.dataset import SceneDataset, load_dataset
 from nrt.data.exr import write_exr
-from nrt.data.family import Family
+from nrt.data.family import Family, member_scenes, unseen_member_scenes
 from nrt.data.grids import MEDIUM_GRIDS_FILE, PROPERTY_KEYS, save_property_grids
+from nrt.data.media import medium_grids
+from nrt.data.spec import resolve_scene
 from nrt.errors import NrtError
 from nrt.evaluation.evaluate import property_metrics
 from nrt.evaluation.images import display, save_png
@@ -100,13 +106,15 @@ class LatentMediumModel(Protocol):
 @dataclass
 class FamilyData:
     """The family as ``nrt-sample`` uses it: ``cameras`` (member 0's held-out split: the
-    camera rig and both skies every member shares), each member's ground-truth grids and
-    the scene's effects."""
+    camera rig and both skies every member shares), each member's ground-truth grids, the
+    scene's effects and, where known, the family's scene config (``scene``, with its
+    ``family`` key: what draws new media of the family, :func:`unseen_media`)."""
 
     family: Family
     cameras: SceneDataset
     truths: list[dict[str, torch.Tensor]]
     effects: dict
+    scene: dict | None = None
 
     @property
     def skies(self) -> dict[str, str]:
@@ -114,8 +122,9 @@ class FamilyData:
         return {"train": self.family.train_environment, "novel": self.family.heldout_environment}
 
 
-def load_family_data(family: Family, effects: dict) -> FamilyData:
-    """Read the family's camera rig and its members' ground truths (all must have one)."""
+def load_family_data(family: Family, effects: dict, scene: dict | None = None) -> FamilyData:
+    """Read the family's camera rig and its members' ground truths (all must have one);
+    ``scene``: the family's scene config (the run's ``scene``), kept as it is."""
     cameras = load_dataset(family.member(0).folder, "test")
     truths = []
     for member in family.members:
@@ -125,7 +134,36 @@ def load_family_data(family: Family, effects: dict) -> FamilyData:
                            "ground_truth.npz: nrt-sample scores reconstructions against each "
                            "member's true medium. Render the family with nrt-data scene=family.")
         truths.append(truth)
-    return FamilyData(family, cameras, truths, effects)
+    return FamilyData(family, cameras, truths, effects, scene)
+
+
+def check_unseen(data: FamilyData) -> None:
+    """Refuse to draw new media of the family (:func:`unseen_media`) from a scene config
+    that does not draw its first member again: a run trained on another config of the
+    family's name would otherwise be scored against media of another family."""
+    if not data.scene or "family" not in data.scene:
+        raise NrtError("fid.unseen_reference=true draws new media of the family from its "
+                       "scene config, but this run's config holds no scene.family; set "
+                       "fid.unseen_reference=false.")
+    first = medium_grids(resolve_scene(member_scenes(data.scene)[0]))
+    if any(not torch.allclose(torch.as_tensor(first[k]), data.truths[0][k].float(), atol=1e-5)
+           for k in PROPERTY_KEYS):
+        raise NrtError(f"fid.unseen_reference=true: the run's scene config does not draw the "
+                       f"first member of the family '{data.family.root}' again (its medium "
+                       "differs from that member's ground_truth.npz): the run was trained on "
+                       "another family, or the family was rendered from another config. "
+                       "Sample the run with the family it was trained on, or set "
+                       "fid.unseen_reference=false.")
+
+
+def unseen_media(data: FamilyData, count: int) -> list[dict[str, torch.Tensor]]:
+    """The true media (the ground-truth layout) of ``count`` new members of the family:
+    drawn by its scene config (``data.scene``, checked by :func:`check_unseen`) from the
+    seeds after its members' (:func:`~nrt.data.family.unseen_member_scenes`), never
+    rendered as photos nor trained on."""
+    check_unseen(data)
+    return [{k: torch.as_tensor(v) for k, v in medium_grids(resolve_scene(spec)).items()}
+            for spec in unseen_member_scenes(data.scene, count)]
 
 
 @dataclass
@@ -148,6 +186,7 @@ class SampleSettings:
     fid_real_views: int | None = 8
     fid_truth_reference: bool = True
     fid_recon_reference: bool = False
+    fid_unseen_reference: bool = False
     interpolate_members: Sequence[int] | None = None
     interpolate_steps: int = 7
     picture_max_samples: int = 16
@@ -477,11 +516,14 @@ def sample_media(model: LatentMediumModel, data: FamilyData, settings: SampleSet
              for col, env in data.skies.items()}
     if fid is not None:
         # the true media and the reconstructions share render seeds: equal media, equal FID
-        references = {name: reference_renders(media, data, frames, spp, 1 + settings.n,
-                                              settings.n)
-                      for name, media, wanted in (
-                          ("truth", data.truths, settings.fid_truth_reference),
-                          ("recon", recon_media, settings.fid_recon_reference)) if wanted}
+        wanted = {"truth": settings.fid_truth_reference,
+                  "recon": settings.fid_recon_reference,
+                  "unseen": settings.fid_unseen_reference}
+        media = {"truth": lambda: data.truths, "recon": lambda: recon_media,
+                 "unseen": lambda: unseen_media(data, settings.n)}
+        references = {name: reference_renders(media[name](), data, frames, spp,
+                                              1 + settings.n, settings.n)
+                      for name, on in wanted.items() if on}
         for col, real in reals.items():
             fid.white = white_of(real)
             fake = torch.as_tensor(np.concatenate(renders[col]))

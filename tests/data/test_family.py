@@ -14,7 +14,7 @@ import pytest
 
 from nrt.data.dataset import load_dataset
 from nrt.data.exr import read_exr
-from nrt.data.family import FAMILY_FILE, load_family, member_scenes
+from nrt.data.family import FAMILY_FILE, load_family, member_scenes, unseen_member_scenes
 from nrt.data.render import ensure_dataset
 from nrt.errors import DatasetError, SceneError
 from tests.cli.test_cli_data import SMALL, assert_refused_before_rendering, file_times, nrt_data
@@ -139,6 +139,19 @@ def test_members_follow_the_seed_and_the_two_skies(scene_config):
     assert [m["name"] for m in members][0] == "family_seed10"
     assert all(m["environments"]["sky_seeds"] == [0, 1] for m in members)
     assert all("family" not in m for m in members)
+
+
+def test_unseen_members_are_the_seeds_after_the_members(scene_config):
+    """New media of the family come from the seeds after its K members', drawn as members
+    are: the members of a family of K + 3 are the family's K, then the 3 unseen."""
+    scene = scene_config("scene=family", "scene.seed=10")
+    unseen = unseen_member_scenes(scene, 3)
+    assert [m["seed"] for m in unseen] == [14, 15, 16]
+    assert [m["name"] for m in unseen] == ["family_seed14", "family_seed15", "family_seed16"]
+    wider = {**scene, "family": {**scene["family"], "members": K + 3}}
+    assert member_scenes(wider) == member_scenes(scene) + unseen
+    assert unseen_member_scenes(scene, 0) == []
+    assert scene["family"]["members"] == K  # the config itself is unchanged
 
 
 def test_cpu_and_paper_presets_set_k():

@@ -38,9 +38,11 @@ from nrt.evaluation.sample import (
     FamilyData,
     SampleSettings,
     check_medium,
+    check_unseen,
     load_family_data,
     make_fid,
     sample_media,
+    unseen_media,
     white_of,
 )
 from nrt.weights import FID_FILE, weights_dir
@@ -297,7 +299,8 @@ def test_white_ignores_the_few_views_with_the_sun():
 def family_data(family_dir) -> FamilyData:
     cfg = compose_config("dataset", list(SCENE))
     return load_family_data(load_family(family_dir),
-                            OmegaConf.to_container(cfg.scene.effects, resolve=True))
+                            OmegaConf.to_container(cfg.scene.effects, resolve=True),
+                            OmegaConf.to_container(cfg.scene, resolve=True))
 
 
 @pytest.fixture(scope="module")
@@ -384,6 +387,43 @@ def test_pictures_show_every_sample_under_both_skies(sampled):
     assert strip.shape == (2 * 24 + 2, 5 * 24 + 4 * 2, 3)  # 5 steps, a row per sky
 
 
+def test_unseen_media_are_new_members_of_the_family(family_data):
+    """The unseen reference's media: drawn by the family's config from the seeds after its
+    members' (the config draws the first member's ground truth again), valid, and each
+    unlike every member (its sigma_t MSE to the nearest member's truth is of the order of
+    the members' own spacing, not a rounding)."""
+    from nrt.evaluation.evaluate import property_metrics
+
+    check_unseen(family_data)
+    media = unseen_media(family_data, 2)
+    assert len(media) == 2
+    effects, truths = family_data.effects, family_data.truths
+    for m in media:
+        check_medium(m, "unseen medium")
+        assert m["g"].shape == truths[0]["g"].shape
+
+    def nearest(medium, skip=None):
+        return min(property_metrics(medium, t, effects)["mse_sigma_t_x100"]
+                   for j, t in enumerate(truths) if j != skip)
+    apart = [nearest(t, skip=j) for j, t in enumerate(truths)]
+    for m in media:
+        assert nearest(m) > 0.05 * min(apart), (nearest(m), apart)
+    assert not torch.equal(media[0]["sigma_s"], media[1]["sigma_s"])
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"family": None}, "holds no scene.family"),
+    ({"seed": 7}, "does not draw the first member"),
+])
+def test_unseen_media_need_the_familys_own_config(family_data, change, match):
+    scene = {k: v for k, v in family_data.scene.items() if change.get(k, 0) is not None}
+    scene.update({k: v for k, v in change.items() if v is not None})
+    data = FamilyData(family_data.family, family_data.cameras, family_data.truths,
+                      family_data.effects, scene)
+    with pytest.raises(NrtError, match=match):
+        unseen_media(data, 1)
+
+
 @NEEDS_FID
 @pytest.mark.slow
 def test_fid_columns_with_the_real_weights(family_data, tmp_path):
@@ -395,7 +435,8 @@ def test_fid_columns_with_the_real_weights(family_data, tmp_path):
     rounding would not do: a density a rounding apart turns some of Mitsuba's tracking
     decisions, and FID on 2 crops moved 0.7 % with it.)"""
     settings = SampleSettings(n=2, views=1, fid_n_crops=1, fid_real_views=2,
-                              interpolate_steps=2, fid_recon_reference=True)
+                              interpolate_steps=2, fid_recon_reference=True,
+                              fid_unseen_reference=True)
     fid = make_fid(settings, family_data.cameras)
     result = sample_media(ExactMembers(family_data), family_data, settings, tmp_path, fid)
     m = result.metrics
@@ -405,6 +446,10 @@ def test_fid_columns_with_the_real_weights(family_data, tmp_path):
             assert np.isfinite(m[key]) and m[key] > 0, (key, m[key])
         assert m[f"fid_{col}_illumination_recon"] == pytest.approx(
             m[f"fid_{col}_illumination_truth"], rel=1e-6)
+        # other media on the same render seeds and crops: another score
+        unseen = m[f"fid_{col}_illumination_unseen"]
+        assert np.isfinite(unseen) and unseen > 0
+        assert unseen != pytest.approx(m[f"fid_{col}_illumination_truth"], rel=1e-6)
         assert m[f"fid_{col}_real_crops"] == 4 * 2  # K members x 2 views x 1 crop
         assert m[f"fid_{col}_sample_crops"] == 2
     assert m["fid_crop"] == 16
