@@ -121,6 +121,12 @@ CONFIGS = {
     # and twin photo rays: the two levers that each brought the reconstructions closest
     "two_a_step_dim16_free_offsets_anneal_slow_long_twins": [*ANNEAL_SLOW_LONG,
                                                              "budget.rte.photo_twins=512"],
+    # and noise on the codes (0.7 of their spread, as far from a code as Scott's smoothed
+    # bootstrap draws): the decoders trained on codes around each member, where a sampler
+    # draws, not only at the 16 codes (folded at the codes, the decoder's media leave the
+    # family a short way from them)
+    "two_a_step_dim16_free_offsets_anneal_slow_long_twins_code_noise": [
+        *ANNEAL_SLOW_LONG, "budget.rte.photo_twins=512", "mode.latent.code_noise=0.7"],
     # and Adam stepping each member's code and offsets only on its own steps: plain Adam
     # moves an undrawn member by its last draw's momentum, about sqrt(16 / 2) learning
     # rates for each gradient it gets, where a single scene's parameter moves by about one

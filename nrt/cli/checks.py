@@ -247,8 +247,8 @@ def check_mode_fits(cfg: DictConfig) -> bool:
 def check_mode(cfg: DictConfig) -> None:
     """Refuse a mode that does not fit the scene or stage (:func:`check_mode_fits`), and
     latent settings no run can use, before anything is built or loaded: ``mode.latent``
-    holds counts >= 1, a non-negative ``init_std``, ``prior_weight`` and
-    ``offset_prior_weight``, a positive ``lr`` and booleans ``input``,
+    holds counts >= 1, a non-negative ``init_std``, ``prior_weight``,
+    ``offset_prior_weight`` and ``code_noise``, a positive ``lr`` and booleans ``input``,
     ``member_offsets``, ``light_offsets`` and ``per_member_adam``."""
     if not check_mode_fits(cfg):
         return
@@ -269,7 +269,7 @@ def check_mode(cfg: DictConfig) -> None:
         if not _is_count(latent.get(name), 1):
             raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be a whole number "
                               f">= 1 ({what}).")
-    for name in ("init_std", "prior_weight", "offset_prior_weight"):
+    for name in ("init_std", "prior_weight", "offset_prior_weight", "code_noise"):
         if not _is_number(latent.get(name, 0)) or latent.get(name, 0) < 0:
             raise ConfigError(f"mode.latent.{name}={latent.get(name)}: must be a number >= 0.")
     if not _is_number(latent.get("lr")) or latent["lr"] <= 0:

@@ -25,6 +25,12 @@ latent code (the auto-decoder of :mod:`nrt.stages.generative_ea`, continued).
   trains the light field, which reads the codes without gradient, at collocation points
   that each carry a member index (split evenly over the members). Each objective is the
   mean over all rays or points of the family.
+- **Noise on the codes** (``code_noise`` h > 0, off by default): each step decodes a
+  member's medium (density and modulation) at ``z_k + h s * eps`` (eps ~ N(0, I), a fresh
+  draw per member and step; s the codes' standard deviation over the members, per
+  dimension, without gradient), its light at z_k: the photos of member k then train the
+  decoders on codes around z_k, as a sampler's smoothed bootstrap draws them, not at z_k
+  alone.
 - **Members a step.** By default a step's rays mix all K members, and the step decodes K
   media and lights. With ``data.members_per_step=M`` each step draws M members (the same on
   every rank) and its rays, collocation points, priors and uncollided refreshes concern
@@ -84,7 +90,8 @@ class SceneFamily(nn.Module):
     def __init__(self, stage: RTEStage, members: int, latent_dim: int,
                  latent_prior_weight: float = 1e-4, latent_lr: float = 1e-2,
                  offset_prior_weight: float = 1.0, per_member_adam: bool = False,
-                 ea_field: dict | None = None, member_info: list[dict] | None = None):
+                 code_noise: float = 0.0, ea_field: dict | None = None,
+                 member_info: list[dict] | None = None):
         super().__init__()
         for key, value in (("scene.family.members", members), ("mode.latent.dim", latent_dim)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -102,6 +109,15 @@ class SceneFamily(nn.Module):
             raise ConfigError(f"mode.latent.per_member_adam={per_member_adam}: must be true or "
                               "false.")
         self.per_member_adam = per_member_adam
+        if isinstance(code_noise, bool) or not isinstance(code_noise, int | float) \
+                or not 0 <= code_noise < float("inf"):
+            raise ConfigError(f"mode.latent.code_noise={code_noise}: must be a number >= 0 (the "
+                              "codes' noise in training, in units of their spread; 0: none).")
+        if code_noise and members < 2:
+            raise ConfigError(f"mode.latent.code_noise={code_noise} scales the noise by the "
+                              "codes' spread over the members, which one member does not "
+                              "have: train a family of 2 or more, or set code_noise=0.")
+        self.code_noise = float(code_noise)
         if stage.medium.member_offsets not in (0, members):
             raise ConfigError(f"the medium holds feature offsets for {stage.medium.member_offsets} "
                               f"members, but the family has scene.family.members={members}.")
@@ -205,12 +221,24 @@ class SceneFamily(nn.Module):
         """``member`` where the medium holds the members' feature offsets, else None."""
         return member if self.holds_member_offsets else None
 
-    def member_medium(self, member: int):
+    def member_medium(self, member: int, code: torch.Tensor | None = None):
         """Member ``member``'s medium: voxels, differentiable in the decoder, the code and the
-        member's feature offset (where the medium holds them)."""
+        member's feature offset (where the medium holds them); decoded at ``code`` (d_z,)
+        in place of the member's own where given (a training step's noisy code)."""
         with record_function("nrt/medium"):  # a profiler scope (benchmarks.profile_step)
-            code = self.codes[member]
+            code = self.codes[member] if code is None else code
             return self.medium.voxels_for(self.density_for(code), code, self.offset_of(member))
+
+    def noisy_codes(self, members: list[int]) -> torch.Tensor | None:
+        """The codes a training step decodes ``members``' media at: ``z_k + h s * eps``
+        (module docstring, ``code_noise`` h), differentiable in the codes; None without
+        noise (the codes themselves)."""
+        if not self.code_noise:
+            return None
+        spread = self.codes.detach().std(0)
+        eps = torch.randn(len(members), self.codes.shape[1], device=spread.device,
+                          dtype=spread.dtype)
+        return self.codes[members] + self.code_noise * spread * eps
 
     def member_scene(self, member: int) -> tuple[Any, Any]:
         """Member ``member``'s medium (:meth:`member_medium`) and light (the code without
@@ -234,8 +262,10 @@ class SceneFamily(nn.Module):
             self.member_steps[step] += 1
         self._decoded = []
         pairs = []
-        for k in range(self.codes.shape[0]) if step is None else step.tolist():
-            decoded = self.member_medium(k)
+        members = list(range(self.codes.shape[0])) if step is None else step.tolist()
+        noisy = self.noisy_codes(members)
+        for i, k in enumerate(members):
+            decoded = self.member_medium(k, None if noisy is None else noisy[i])
             leaf = decoded.as_leaf()
             self._decoded.append((decoded, leaf))
             with record_function("nrt/light_field"):

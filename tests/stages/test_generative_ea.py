@@ -319,6 +319,7 @@ def test_stage_2_refuses_a_generative_checkpoint(short):
     ((*FAMILY, "mode.latent.input=3"), "mode.latent.input=3"),
     ((*FAMILY, "mode.latent.member_offsets=2"), "mode.latent.member_offsets=2"),
     ((*FAMILY, "mode.latent.offset_prior_weight=-0.5"), "mode.latent.offset_prior_weight=-0.5"),
+    ((*FAMILY, "mode.latent.code_noise=-0.1"), "mode.latent.code_noise=-0.1"),
     ((*FAMILY, "stage.environments=[0,1]"), "stage.environments=[0, 1]"),
 ])
 def test_bad_modes_are_refused_from_the_config(overrides, message):

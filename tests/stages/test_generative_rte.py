@@ -285,6 +285,49 @@ def test_one_decode_a_step_gives_the_gradients_of_one_decode_per_objective(short
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-4 * float(b.abs().max()) + 1e-12)
 
 
+def test_noisy_codes_decode_the_step_around_each_code(short):
+    """``code_noise`` h: a step decodes member k's medium at ``z_k + h s eps`` (s the codes'
+    spread per dimension, eps a fresh normal draw per member and step), its light at z_k;
+    the photos' gradient still reaches the codes; h = 0 decodes at the codes bit for bit."""
+    family = short["model"].scenes
+    batch = next(iter(short["dm"].train_dataloader()))
+    try:
+        plain = [leaf.stacked for leaf, _ in family.pairs(batch)]
+        family._decoded = []
+        for k, stacked in enumerate(plain):
+            assert torch.equal(stacked, family.member_medium(k).stacked.detach())
+        family.code_noise = 0.5
+        torch.manual_seed(11)
+        eps = torch.randn(K, family.codes.shape[1])
+        expected = family.codes.detach() + 0.5 * family.codes.detach().std(0) * eps
+        torch.manual_seed(11)
+        pairs = family.pairs(batch)
+        for k, (leaf, light) in enumerate(pairs):
+            assert torch.allclose(leaf.stacked, family.member_medium(k, expected[k])
+                                  .stacked.detach(), rtol=1e-6, atol=1e-7)
+            assert not torch.allclose(leaf.stacked, plain[k])  # another medium than at z_k
+            at_code = family.light.member(k, family.codes[k].detach())
+            assert torch.equal(light.coefficients, at_code.coefficients)  # the light at z_k
+        family.codes.grad = None
+        sum(leaf.stacked.sum() for leaf, _ in pairs).backward()
+        family.backward_media(torch.Tensor.backward)
+        assert family.codes.grad is not None and family.codes.grad.abs().max() > 0
+        second = family.pairs(batch)  # a fresh draw each step
+        assert not torch.equal(second[0][0].stacked, pairs[0][0].stacked)
+    finally:
+        family.code_noise, family._decoded, family.codes.grad = 0.0, [], None
+
+
+@pytest.mark.parametrize("value, match", [(-0.5, "must be a number >= 0"),
+                                          (True, "must be a number >= 0")])
+def test_bad_code_noise_is_refused(short, value, match):
+    from nrt.stages.family import SceneFamily
+
+    with pytest.raises(ConfigError, match=match):
+        SceneFamily(short["model"], members=K, latent_dim=4, code_noise=value,
+                    ea_field={}, member_info=None)
+
+
 def test_folding_a_run_without_offsets_is_refused(short):
     """``nrt-sample fold.steps>0`` on a run trained without member offsets: a config error
     naming the key and the fix, and the decoder left as it was."""
