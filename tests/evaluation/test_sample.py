@@ -411,13 +411,16 @@ def test_unseen_media_are_new_members_of_the_family(family_data):
     assert not torch.equal(media[0]["sigma_s"], media[1]["sigma_s"])
 
 
-@pytest.mark.parametrize("change, match", [
-    ({"family": None}, "holds no scene.family"),
-    ({"seed": 7}, "does not draw the first member"),
+@pytest.mark.parametrize("key, value, match", [
+    ("family", None, "holds no scene.family"),
+    ("seed", 7, "does not draw the first member"),
 ])
-def test_unseen_media_need_the_familys_own_config(family_data, change, match):
-    scene = {k: v for k, v in family_data.scene.items() if change.get(k, 0) is not None}
-    scene.update({k: v for k, v in change.items() if v is not None})
+def test_unseen_media_need_the_familys_own_config(family_data, key, value, match):
+    """A config without a family, or one whose first member is another medium (another
+    seed), is refused."""
+    scene = {k: v for k, v in family_data.scene.items() if k != key}
+    if value is not None:
+        scene[key] = value
     data = FamilyData(family_data.family, family_data.cameras, family_data.truths,
                       family_data.effects, scene)
     with pytest.raises(NrtError, match=match):
