@@ -118,23 +118,17 @@ class Scorer:
 
 
 @dataclass
-class LoadedRun:
-    """A finished generative run made ready to score (folded as ``nrt-sample`` folds it):
-    its family, model, FID settings (conf/sample.yaml's counts), the frames rendered per
-    sky, the real photos, the members' reconstructions (rows and grids) and the true media
-    on the run's cells (``floor``)."""
+class FamilyScoring:
+    """A run's family made ready to score media as ``nrt-sample`` does: its data, FID
+    settings (conf/sample.yaml's counts), the grid resolution, the family's spp, the frames
+    rendered per sky and the real photos."""
 
     data: object
-    model: object
     base: object
     resolution: int
     spp: int
     frames: dict
     reals: dict
-    recon_rows: list
-    recon_media: list
-    floor: list
-    unseen: list
 
     def renders(self, media: list[dict]) -> dict[str, list[np.ndarray]]:
         """``media`` rendered as the references are (:func:`reference_renders`)."""
@@ -153,41 +147,63 @@ class LoadedRun:
                       self.reals, references)
 
 
-def load_run(run: Path, n: int, fold_bandwidth: float | str | None = None) -> LoadedRun:
-    """:class:`LoadedRun` of the run folder ``run`` for ``n`` media per FID, folded as
-    ``nrt-sample`` folds it with ``fold.bandwidth=fold_bandwidth``."""
+def family_scoring(run: Path, n: int, fold_bandwidth: float | str | None = None
+                   ) -> tuple[FamilyScoring, object]:
+    """:class:`FamilyScoring` of the run folder ``run``'s family for ``n`` media per FID,
+    and the run's opened folder (:func:`~nrt.evaluation.runs.open_generative_run`)."""
     from nrt.data.family import load_family
-    from nrt.data.grids import resample_grids
-    from nrt.evaluation.runs import load_generative_model, open_generative_run, read_run_folder
+    from nrt.evaluation.runs import open_generative_run
     from nrt.evaluation.sample import (
         SampleSettings,
-        fold,
         load_family_data,
         real_images,
-        reconstruction,
         sky_frames,
-        unseen_media,
     )
     from nrt.mitsuba.variant import select_variant
 
     info = open_generative_run(run)
     data = load_family_data(load_family(info.family_dir), info.effects, info.scene)
-    model = load_generative_model(info)
     base = SampleSettings(n=n, fold_bandwidth=fold_bandwidth)  # conf/sample.yaml's FID counts
-    fold(model, base)
     select_variant("auto")
-    res = int(data.truths[0]["g"].shape[0])
-    recon_rows, recon_media = reconstruction(model, data, res)
-    cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])
-    return LoadedRun(
-        data=data, model=model, base=base, resolution=res,
+    return FamilyScoring(
+        data=data, base=base, resolution=int(data.truths[0]["g"].shape[0]),
         spp=int((data.cameras.spec or {}).get("spp", 128)),
         frames={col: sky_frames(data.cameras, env, base.views)
                 for col, env in data.skies.items()},
         reals={col: real_images(data, env, base.fid_real_views)
-               for col, env in data.skies.items()},
-        recon_rows=recon_rows, recon_media=recon_media,
-        floor=[resample_grids(resample_grids(t, cells), res) for t in data.truths],
+               for col, env in data.skies.items()}), info
+
+
+@dataclass
+class LoadedRun(FamilyScoring):
+    """A finished generative run made ready to score (folded as ``nrt-sample`` folds it):
+    :class:`FamilyScoring`, the model, the members' reconstructions (rows and grids), the
+    true media on the run's cells (``floor``) and new media of the family (``unseen``)."""
+
+    model: object = None
+    recon_rows: list = None
+    recon_media: list = None
+    floor: list = None
+    unseen: list = None
+
+
+def load_run(run: Path, n: int, fold_bandwidth: float | str | None = None) -> LoadedRun:
+    """:class:`LoadedRun` of the run folder ``run`` for ``n`` media per FID, folded as
+    ``nrt-sample`` folds it with ``fold.bandwidth=fold_bandwidth``."""
+    from nrt.data.grids import resample_grids
+    from nrt.evaluation.runs import load_generative_model, read_run_folder
+    from nrt.evaluation.sample import fold, reconstruction, unseen_media
+
+    scoring, info = family_scoring(run, n, fold_bandwidth)
+    data = scoring.data
+    model = load_generative_model(info)
+    fold(model, scoring.base)
+    recon_rows, recon_media = reconstruction(model, data, scoring.resolution)
+    cells = int(read_run_folder(run)[2].budget.rte.medium_resolutions[-1])
+    return LoadedRun(
+        **vars(scoring), model=model, recon_rows=recon_rows, recon_media=recon_media,
+        floor=[resample_grids(resample_grids(t, cells), scoring.resolution)
+               for t in data.truths],
         unseen=unseen_media(data, n))
 
 

@@ -139,13 +139,16 @@ def member_scenes(scene_cfg: Mapping) -> list[dict]:
     return members
 
 
-def unseen_member_scenes(scene_cfg: Mapping, count: int) -> list[dict]:
+def unseen_member_scenes(scene_cfg: Mapping, count: int, start: int = 0) -> list[dict]:
     """The scene configs of ``count`` media the family's generator draws after its K
-    members (seeds ``scene.seed + K`` onward, named as members are): new media of the
-    family that no run trained on, for scoring a generator against the family itself."""
-    members = int(scene_cfg["family"]["members"])
-    wider = {**scene_cfg, "family": {**scene_cfg["family"], "members": members + count}}
-    return member_scenes(wider)[members:]
+    members and ``start`` more (seeds ``scene.seed + K + start`` onward, named as members
+    are): new media of the family that no run trained on, for scoring a generator against
+    the family itself; ``start`` = j * count gives the j-th of disjoint sets."""
+    if start < 0 or count < 0:
+        raise ValueError(f"unseen members: count ({count}) and start ({start}) must be >= 0")
+    first = int(scene_cfg["family"]["members"]) + int(start)
+    wider = {**scene_cfg, "family": {**scene_cfg["family"], "members": first + count}}
+    return member_scenes(wider)[first:]
 
 
 def _manifest(name: str, specs: list[dict], data_root: Path) -> dict:

@@ -156,14 +156,16 @@ def check_unseen(data: FamilyData) -> None:
                        "fid.unseen_reference=false.")
 
 
-def unseen_media(data: FamilyData, count: int) -> list[dict[str, torch.Tensor]]:
+def unseen_media(data: FamilyData, count: int, start: int = 0
+                 ) -> list[dict[str, torch.Tensor]]:
     """The true media (the ground-truth layout) of ``count`` new members of the family:
     drawn by its scene config (``data.scene``, checked by :func:`check_unseen`) from the
-    seeds after its members' (:func:`~nrt.data.family.unseen_member_scenes`), never
-    rendered as photos nor trained on."""
+    seeds after its members' and ``start`` more
+    (:func:`~nrt.data.family.unseen_member_scenes`), never rendered as photos nor trained
+    on."""
     check_unseen(data)
     return [{k: torch.as_tensor(v) for k, v in medium_grids(resolve_scene(spec)).items()}
-            for spec in unseen_member_scenes(data.scene, count)]
+            for spec in unseen_member_scenes(data.scene, count, start)]
 
 
 @dataclass

@@ -152,6 +152,11 @@ def test_unseen_members_are_the_seeds_after_the_members(scene_config):
     assert member_scenes(wider) == member_scenes(scene) + unseen
     assert unseen_member_scenes(scene, 0) == []
     assert scene["family"]["members"] == K  # the config itself is unchanged
+    # disjoint sets: the second set of 2 starts where the first ends
+    assert unseen_member_scenes(scene, 2, start=2) == unseen_member_scenes(scene, 4)[2:]
+    assert [m["seed"] for m in unseen_member_scenes(scene, 2, start=2)] == [16, 17]
+    with pytest.raises(ValueError, match="start"):
+        unseen_member_scenes(scene, 2, start=-1)
 
 
 def test_cpu_and_paper_presets_set_k():
