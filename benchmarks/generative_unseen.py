@@ -46,7 +46,7 @@ distance to the nearest member's true medium and the members' own spacing."""
 def measure(run: Path, label: str, sets: list[int], seeds: list[int], n: int,
             table: Path) -> None:
     """The rows of ``run``'s family for every (set, seed) not yet in ``table``."""
-    from nrt.evaluation.sample import check_unseen, unseen_media
+    from nrt.evaluation.sample import unseen_media
 
     done = {(r["run"], r["set"], r["seed"], r["n"]) for r in read_table(table)}
     todo = [(j, s) for j in sets for s in seeds if (str(run), str(j), str(s), str(n)) not in done]
@@ -54,8 +54,8 @@ def measure(run: Path, label: str, sets: list[int], seeds: list[int], n: int,
         return
     scoring, _ = family_scoring(run, n)
     data = scoring.data
-    check_unseen(data)
     members = int(data.scene["family"]["members"])
+    # unseen_media refuses a config that does not draw the family again, before any render
     media = {j: unseen_media(data, n, start=j * n) for j in sorted({j for j, _ in todo})}
     references = {"truth": scoring.renders(data.truths),
                   **{j: scoring.renders(m) for j, m in media.items()}}
