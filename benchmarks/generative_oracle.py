@@ -67,22 +67,23 @@ def medium_stats(truth: dict, medium: dict) -> dict[str, float]:
             "dense_ratio": ratios["dense"], "dense_bias": bias}
 
 
+def as_tensors(grids: dict) -> dict[str, torch.Tensor]:
+    """Property grids as float64 tensors (``bbox`` left out)."""
+    return {k: torch.as_tensor(np.asarray(v, np.float64)) for k, v in grids.items()
+            if k != "bbox"}
+
+
 def run_row(run: Path, preset: str, member: int, prior: str, seed: int) -> dict:
     """The table's row of one finished oracle run (the module docstring's figures)."""
     from nrt.data.grids import load_property_grids, resample_grids
     from nrt.run_dirs import read_run_info
 
-    truth = {k: torch.as_tensor(np.asarray(v, np.float64))
-             for k, v in load_property_grids(
-                 Path(read_run_info(run)["dataset_dir"]) / "ground_truth.npz").items()
-             if k != "bbox"}
+    dataset = Path(read_run_info(run)["dataset_dir"])
+    truth = as_tensors(load_property_grids(dataset / "ground_truth.npz"))
     size = truth["sigma_a"].shape[0]
-    grids = load_property_grids(run / "medium_grids.npz")
     cells = int(OmegaConf.load(run / ".hydra" / "config.yaml").budget.rte.density_resolution)
-    medium = {k: torch.as_tensor(np.asarray(v, np.float64))
-              for k, v in resample_grids(grids, size).items() if k != "bbox"}
-    floor = {k: torch.as_tensor(np.asarray(v, np.float64))
-             for k, v in resample_grids(resample_grids(truth, cells), size).items()}
+    medium = as_tensors(resample_grids(load_property_grids(run / "medium_grids.npz"), size))
+    floor = as_tensors(resample_grids(resample_grids(truth, cells), size))
     checks = validation_rows(run)
     finals = run_finals(run, {"psnr": "val/psnr"})
     row = {"preset": preset, "member": member, "prior": prior, "seed": seed,
