@@ -108,13 +108,16 @@ class FamilyData:
     """The family as ``nrt-sample`` uses it: ``cameras`` (member 0's held-out split: the
     camera rig and both skies every member shares), each member's ground-truth grids, the
     scene's effects and, where known, the family's scene config (``scene``, with its
-    ``family`` key: what draws new media of the family, :func:`unseen_media`)."""
+    ``family`` key: what draws new media of the family, :func:`unseen_media`);
+    ``unseen_checked``: :func:`check_unseen` passed on it (the check resolves the first
+    member's medium, seconds at ``cpu``, so it runs once)."""
 
     family: Family
     cameras: SceneDataset
     truths: list[dict[str, torch.Tensor]]
     effects: dict
     scene: dict | None = None
+    unseen_checked: bool = field(default=False, compare=False, repr=False)
 
     @property
     def skies(self) -> dict[str, str]:
@@ -140,7 +143,10 @@ def load_family_data(family: Family, effects: dict, scene: dict | None = None) -
 def check_unseen(data: FamilyData) -> None:
     """Refuse to draw new media of the family (:func:`unseen_media`) from a scene config
     that does not draw its first member again: a run trained on another config of the
-    family's name would otherwise be scored against media of another family."""
+    family's name would otherwise be scored against media of another family. Once per
+    ``data``: a check that passed is not repeated."""
+    if data.unseen_checked:
+        return
     if not data.scene or "family" not in data.scene:
         raise NrtError("fid.unseen_reference=true draws new media of the family from its "
                        "scene config, but this run's config holds no scene.family; set "
@@ -154,6 +160,7 @@ def check_unseen(data: FamilyData) -> None:
                        "another family, or the family was rendered from another config. "
                        "Sample the run with the family it was trained on, or set "
                        "fid.unseen_reference=false.")
+    data.unseen_checked = True
 
 
 def unseen_media(data: FamilyData, count: int, start: int = 0

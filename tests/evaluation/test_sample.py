@@ -27,6 +27,7 @@ from omegaconf import OmegaConf
 from nrt.data.exr import read_exr
 from nrt.data.family import load_family
 from nrt.data.grids import PROPERTY_KEYS, load_property_grids
+from nrt.data.media import medium_grids
 from nrt.errors import ConfigError, NrtError
 from nrt.evaluation.latent_gaussian import (
     auto_shrinkage,
@@ -387,16 +388,24 @@ def test_pictures_show_every_sample_under_both_skies(sampled):
     assert strip.shape == (2 * 24 + 2, 5 * 24 + 4 * 2, 3)  # 5 steps, a row per sky
 
 
-def test_unseen_media_are_new_members_of_the_family(family_data):
+def test_unseen_media_are_new_members_of_the_family(family_data, monkeypatch):
     """The unseen reference's media: drawn by the family's config from the seeds after its
     members' (the config draws the first member's ground truth again), valid, and each
     unlike every member (its sigma_t MSE to the nearest member's truth is of the order of
-    the members' own spacing, not a rounding)."""
+    the members' own spacing, not a rounding). The check that the config draws the family
+    runs once: drawing after it resolves only the new media."""
+    import nrt.evaluation.sample as sample
     from nrt.evaluation.evaluate import property_metrics
 
-    check_unseen(family_data)
-    media = unseen_media(family_data, 2)
-    assert len(media) == 2
+    data = FamilyData(family_data.family, family_data.cameras, family_data.truths,
+                      family_data.effects, family_data.scene)
+    resolved = []
+    monkeypatch.setattr(sample, "medium_grids",
+                        lambda spec: resolved.append(spec) or medium_grids(spec))
+    check_unseen(data)
+    assert len(resolved) == 1 and data.unseen_checked  # the first member, drawn again
+    media = unseen_media(data, 2)
+    assert len(media) == 2 and len(resolved) == 3  # the two new media only
     effects, truths = family_data.effects, family_data.truths
     for m in media:
         check_medium(m, "unseen medium")
