@@ -44,6 +44,8 @@ per thread (nrt.physics.volume.lookup_batches), so the thread count decides its 
 PINNED = {  # fingerprint -> digest of medium_grids.npz
     # AMD EPYC, family 25 model 1 (AVX2), torch 2.14.1: two runs, the same bits
     "6bfafe043595cb24": "c73486df2354fa737dd9a586579fde6f51f16af047af08e9a3736068287900e3",
+    # AMD EPYC, family 25 model 17 (AVX-512), torch 2.14.1: two runs, the same bits
+    "d121a9b013a76ff3": "6e14bb2a6dd4a700af54cdd82edd71185680709726dab74aeefca7ec87ecfe58",
 }
 
 
