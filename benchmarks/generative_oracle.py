@@ -36,6 +36,7 @@ from omegaconf import OmegaConf
 
 from benchmarks.common import (
     append_rows,
+    compose_train,
     read_table,
     run_finals,
     run_like,
@@ -97,20 +98,21 @@ def run_row(run: Path, preset: str, member: int, prior: str, seed: int) -> dict:
 
 def measure(preset: str, members: list[int], priors: list[str], seed: int,
             table: Path) -> None:
-    """Train (or find) and record every (member, prior) not yet in ``table``."""
+    """Train (or find) and record every (member, prior) not yet in ``table``; members
+    outside the preset's family are refused from its config, before the family renders."""
     from benchmarks.generative_stage1 import member_overrides
 
+    count = int(compose_train(["scene=family", f"preset={preset}"]).scene.family.members)
+    if max(members) >= count:
+        sys.stderr.write(f"generative_oracle: error: --members {max(members)}: the {preset} "
+                         f"family has members 0..{count - 1}; give positions among them.\n")
+        sys.exit(2)
     done = {(r["preset"], r["member"], r["prior"], r["seed"]) for r in read_table(table)}
     todo = [(m, p) for m in members for p in priors
             if (preset, str(m), p, str(seed)) not in done]
     if not todo:
         return
     overrides = member_overrides(preset, seed)
-    if max(members) >= len(overrides):
-        sys.stderr.write(f"generative_oracle: error: --members {max(members)}: the {preset} "
-                         f"family has members 0..{len(overrides) - 1}; give positions among "
-                         "them.\n")
-        sys.exit(2)
     for member, prior in todo:
         run = run_like("rte", preset, [*overrides[member], "init=oracle",
                                        f"losses.weights.extinction_prior={prior}"],

@@ -66,6 +66,7 @@ def test_the_summary_row(tmp_path):
     (["--members=-1"], "--members"),
     (["--priors", "1e-4,x"], "--priors"),
     (["--priors=-1"], "--priors"),
+    (["--preset", "tiny", "--members", "0,4"], "members 0..3"),  # K = 4 at tiny
 ])
 def test_bad_arguments_are_refused_with_status_2(tmp_path, monkeypatch, capsys, args, needle):
     monkeypatch.setenv("NRT_OUTPUT_DIR", str(tmp_path / "out"))
